@@ -1,0 +1,307 @@
+"""Padded trajectory batches: the data structure every FTB stage exchanges.
+
+A set of ``N`` trajectories padded to a horizon ``H`` is a :class:`~tensordict.TensorDict`
+with ``batch_size=[N, H]``, torchrl key names and a boolean ``"mask"`` that is ``True`` on
+valid steps (always a prefix). See ``docs/conventions.md`` for the full key table.
+
+Example:
+    >>> import torch
+    >>> from torchrl_ftb.data import flat_to_trajectories, trajectories_to_flat
+    >>> from torchrl_ftb.testing import make_toy_dataset
+    >>> trajs = make_toy_dataset(num_trajectories=4, horizon=8, seed=0)
+    >>> trajs.batch_size
+    torch.Size([4, 8])
+    >>> flat = trajectories_to_flat(trajs)
+    >>> bool((flat.batch_size[0] == trajectory_lengths(trajs).sum()))
+    True
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Any, Sequence
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.collectors.utils import split_trajectories
+
+__all__ = [
+    "FORMAT_VERSION",
+    "REQUIRED_KEYS",
+    "trajectory_lengths",
+    "validate_trajectories",
+    "flat_to_trajectories",
+    "trajectories_to_flat",
+    "pad_trajectories",
+    "save_trajectories",
+    "load_trajectories",
+    "atomic_torch_save",
+    "atomic_write_text",
+]
+
+FORMAT_VERSION = 1
+REQUIRED_KEYS: tuple = ("observation", "action", "mask")
+_BOOL_NEXT_KEYS = ("done", "terminated", "truncated", "success")
+
+
+def trajectory_lengths(td: TensorDictBase) -> torch.Tensor:
+    """Number of valid steps of each trajectory of an ``[N, H]`` batch (``int64 [N]``)."""
+    return td.get("mask").sum(-1)
+
+
+def validate_trajectories(
+    td: TensorDictBase,
+    *,
+    name: str = "trajectories",
+    obs_dim: int | None = None,
+    action_dim: int | None = None,
+    require: Sequence = (),
+) -> TensorDictBase:
+    """Check that ``td`` is a well-formed padded trajectory batch; raise a clear error if not.
+
+    Args:
+        td: the ``[N, H]`` batch.
+        name: how to call the data in error messages (e.g. the file it came from).
+        obs_dim: expected observation size (e.g. the env's), checked if given.
+        action_dim: expected action size, checked if given.
+        require: extra keys that must be present (e.g. ``[("next", "reward")]``).
+
+    Returns:
+        ``td`` itself, for chaining.
+
+    Raises:
+        ValueError: missing key, wrong rank/shape, non-finite values on valid steps, or a
+            mask that is not a prefix.
+    """
+    if td.batch_dims != 2:
+        raise ValueError(
+            f"{name}: expected a padded trajectory batch with batch_size [N, H], "
+            f"got batch_size {list(td.batch_size)}"
+        )
+    keys = set(td.keys(include_nested=True, leaves_only=True))
+    for key in (*REQUIRED_KEYS, *require):
+        if key not in keys:
+            raise ValueError(f"{name}: missing required key {key!r} (has {sorted(map(str, keys))})")
+    mask = td.get("mask")
+    if mask.dtype != torch.bool:
+        raise ValueError(f"{name}: 'mask' must be bool, got {mask.dtype}")
+    if mask.shape != td.batch_size:
+        raise ValueError(f"{name}: 'mask' must have shape {list(td.batch_size)}, got {list(mask.shape)}")
+    # valid steps must be a prefix: once False, never True again
+    if mask.shape[-1] > 1 and bool((mask[..., 1:] & ~mask[..., :-1]).any()):
+        raise ValueError(f"{name}: 'mask' is not a prefix of valid steps for some trajectory")
+    if bool((mask.sum(-1) == 0).any()):
+        raise ValueError(f"{name}: some trajectories have zero valid steps")
+    for key, dim, what in (("observation", obs_dim, "obs_dim"), ("action", action_dim, "action_dim")):
+        value = td.get(key)
+        if value.ndim != 3:
+            raise ValueError(f"{name}: {key!r} must have shape [N, H, D], got {list(value.shape)}")
+        if dim is not None and value.shape[-1] != dim:
+            raise ValueError(
+                f"{name}: {key!r} has last dimension {value.shape[-1]} but {what}={dim} was expected "
+                "(does the dataset match the environment?)"
+            )
+    for key in keys:
+        value = td.get(key)
+        if value.is_floating_point() and not bool(torch.isfinite(value[mask]).all()):
+            raise ValueError(f"{name}: field {key!r} has NaN or inf values on valid steps")
+    return td
+
+
+def flat_to_trajectories(
+    flat: TensorDictBase,
+    *,
+    done_key: Any = "done",
+    trajectory_key: Any = None,
+) -> TensorDict:
+    """Split flat transitions ``[T]`` (torchrl layout) into a padded ``[N, H]`` batch.
+
+    Uses :func:`torchrl.collectors.utils.split_trajectories`; episodes end where
+    ``("next", done_key)`` is True (or where ``trajectory_key`` changes if given).
+
+    Args:
+        flat: a ``[T]`` TensorDict with ``observation``, ``action`` and ``("next", ...)`` entries.
+        done_key: key under ``"next"`` that ends an episode.
+        trajectory_key: optional per-step episode id key (takes precedence over ``done_key``).
+
+    Returns:
+        An ``[N, H]`` TensorDict with a bool ``"mask"``; helper keys torchrl adds are removed.
+    """
+    if flat.batch_dims != 1:
+        raise ValueError(f"flat transitions must have batch_size [T], got {list(flat.batch_size)}")
+    if trajectory_key is None and ("next", done_key) not in flat.keys(True):
+        raise ValueError(f"flat transitions: missing key ('next', {done_key!r}) to split episodes")
+    flat = flat.clone(False)
+    if trajectory_key is None:
+        # make sure the last step closes an episode so the tail is not dropped or merged
+        done = flat.get(("next", done_key)).clone()
+        done[-1] = True
+        flat.set(("next", done_key), done)
+    out = split_trajectories(flat, done_key=done_key if trajectory_key is None else None,
+                             trajectory_key=trajectory_key)
+    for extra in ("traj_ids", ("collector", "mask"), ("collector", "traj_ids")):
+        if extra in out.keys(True):
+            out = out.exclude(extra)
+    mask = out.get("mask")
+    if mask.dtype != torch.bool:
+        out.set("mask", mask.bool())
+    return out
+
+
+def trajectories_to_flat(td: TensorDictBase) -> TensorDict:
+    """Valid steps of an ``[N, H]`` batch as flat transitions ``[sum(lengths)]`` (mask removed).
+
+    Order is trajectory-major, so ``("next", "done")`` (if present) still ends each episode.
+    """
+    mask = td.get("mask")
+    return td[mask].exclude("mask")
+
+
+def pad_trajectories(trajs: Sequence[TensorDictBase], *, horizon: int | None = None) -> TensorDict:
+    """Stack variable-length ``[T_i]`` trajectories into one ``[N, H]`` batch with a mask.
+
+    Args:
+        trajs: flat per-episode TensorDicts (same keys).
+        horizon: pad length; defaults to the longest episode. Longer episodes raise.
+    """
+    if not len(trajs):
+        raise ValueError("pad_trajectories: no trajectories given")
+    lengths = [int(t.batch_size[0]) for t in trajs]
+    horizon = max(lengths) if horizon is None else horizon
+    if max(lengths) > horizon:
+        raise ValueError(f"pad_trajectories: episode of length {max(lengths)} exceeds horizon {horizon}")
+    padded = []
+    for t, n in zip(trajs, lengths):
+        t = t.exclude("mask") if "mask" in t.keys() else t
+        p = t[:1].expand(horizon).clone().zero_()
+        p[:n] = t
+        p.set("mask", torch.arange(horizon) < n)
+        padded.append(p)
+    return torch.stack(padded, 0).contiguous()
+
+
+def atomic_write_text(path: str | os.PathLike, text: str) -> None:
+    """Write ``text`` to ``path`` atomically (temp file in the same folder + ``os.replace``)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def atomic_torch_save(obj: Any, path: str | os.PathLike) -> None:
+    """``torch.save`` to a temp file then ``os.replace``: a crash never leaves a half file."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
+    try:
+        torch.save(obj, tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def save_trajectories(
+    td: TensorDictBase,
+    path: str | os.PathLike,
+    *,
+    meta: dict | None = None,
+    per_trajectory: TensorDictBase | None = None,
+) -> Path:
+    """Persist a trajectory batch as a memmap folder plus ``meta.json``, atomically.
+
+    The folder is written under a temporary name and renamed at the end, so an interrupted
+    write never leaves a directory that :func:`load_trajectories` accepts.
+
+    Args:
+        td: ``[N, H]`` trajectory batch (validated first).
+        path: target directory (replaced if it exists).
+        meta: JSON-serialisable metadata (env id, generator config, seed, ...).
+        per_trajectory: optional ``[N]`` TensorDict (e.g. ``group`` ids) saved beside it.
+    """
+    validate_trajectories(td, name=str(path))
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp"))
+    try:
+        td.memmap(tmp / "data")
+        if per_trajectory is not None:
+            if per_trajectory.batch_size != td.batch_size[:1]:
+                raise ValueError(
+                    f"{path}: per_trajectory batch_size {list(per_trajectory.batch_size)} "
+                    f"!= [{td.batch_size[0]}]"
+                )
+            per_trajectory.memmap(tmp / "per_trajectory")
+        full_meta = {
+            "format_version": FORMAT_VERSION,
+            "num_trajectories": int(td.batch_size[0]),
+            "horizon": int(td.batch_size[1]),
+            "obs_dim": int(td.get("observation").shape[-1]),
+            "action_dim": int(td.get("action").shape[-1]),
+            "num_transitions": int(td.get("mask").sum()),
+            **(meta or {}),
+        }
+        # meta.json is written last: its presence marks a complete dataset
+        atomic_write_text(tmp / "meta.json", json.dumps(full_meta, indent=2, default=str))
+        if path.exists():
+            old = path.with_name(f".{path.name}.old")
+            if old.exists():
+                shutil.rmtree(old)
+            os.replace(path, old)
+            os.replace(tmp, path)
+            shutil.rmtree(old)
+        else:
+            os.replace(tmp, path)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return path
+
+
+def load_trajectories(
+    path: str | os.PathLike, *, with_per_trajectory: bool = False
+) -> tuple[TensorDict, dict] | tuple[TensorDict, dict, TensorDict | None]:
+    """Load a dataset written by :func:`save_trajectories` (into memory) and check it.
+
+    Returns:
+        ``(td, meta)`` or, with ``with_per_trajectory=True``, ``(td, meta, per_traj_or_None)``.
+
+    Raises:
+        FileNotFoundError: no complete dataset at ``path``.
+        ValueError: unknown format version or malformed content.
+    """
+    path = Path(path)
+    meta_file = path / "meta.json"
+    if not meta_file.exists() or not (path / "data").exists():
+        raise FileNotFoundError(f"{path}: not a torchrl_ftb dataset (missing meta.json or data/)")
+    try:
+        meta = json.loads(meta_file.read_text())
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{meta_file}: corrupt metadata ({err})") from err
+    if meta.get("format_version") != FORMAT_VERSION:
+        raise ValueError(
+            f"{meta_file}: format_version {meta.get('format_version')!r} is not supported "
+            f"(expected {FORMAT_VERSION})"
+        )
+    td = TensorDict.load_memmap(path / "data").to_tensordict()
+    validate_trajectories(
+        td, name=str(path), obs_dim=meta.get("obs_dim"), action_dim=meta.get("action_dim")
+    )
+    if not with_per_trajectory:
+        return td, meta
+    per = None
+    if (path / "per_trajectory").exists():
+        per = TensorDict.load_memmap(path / "per_trajectory").to_tensordict()
+    return td, meta, per

@@ -1,0 +1,10 @@
+"""Mock environments and toy data for tests (TorchRL's mock-env pattern)."""
+from torchrl_ftb.testing.mocks import (
+    MetaWorldMockEnv,
+    ToyLineEnv,
+    make_toy_dataset,
+    toy_optimal_return,
+    toy_reward,
+)
+
+__all__ = ["ToyLineEnv", "MetaWorldMockEnv", "make_toy_dataset", "toy_reward", "toy_optimal_return"]
