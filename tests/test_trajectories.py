@@ -1,0 +1,122 @@
+import json
+import os
+
+import pytest
+import torch
+from tensordict import TensorDict
+
+from torchrl_ftb.data import (
+    flat_to_trajectories,
+    load_trajectories,
+    pad_trajectories,
+    save_trajectories,
+    trajectories_to_flat,
+    trajectory_lengths,
+    validate_trajectories,
+)
+from torchrl_ftb.testing import ToyLineEnv, make_toy_dataset, toy_reward
+
+
+def test_roundtrip_flat_and_padded(toy_data):
+    flat = trajectories_to_flat(toy_data)
+    assert flat.batch_size[0] == int(trajectory_lengths(toy_data).sum())
+    back = flat_to_trajectories(flat)
+    assert back.batch_size[0] == toy_data.batch_size[0]
+    assert torch.equal(back["mask"], toy_data["mask"][:, : back.batch_size[1]])
+    assert torch.equal(back["observation"], toy_data["observation"][:, : back.batch_size[1]])
+    assert torch.equal(back["next", "reward"], toy_data["next", "reward"][:, : back.batch_size[1]])
+
+
+def test_pad_trajectories_matches_lengths(toy_data):
+    lengths = trajectory_lengths(toy_data)
+    episodes = [toy_data[i, : int(n)].exclude("mask") for i, n in enumerate(lengths[:5])]
+    padded = pad_trajectories(episodes, horizon=16)
+    assert torch.equal(trajectory_lengths(padded), lengths[:5])
+    assert torch.equal(padded["observation"][padded["mask"]], toy_data[:5]["observation"][toy_data[:5]["mask"]])
+    with pytest.raises(ValueError, match="exceeds horizon"):
+        pad_trajectories(episodes, horizon=2)
+
+
+def test_toy_dataset_obeys_env_dynamics_and_reward():
+    data = make_toy_dataset(num_trajectories=8, horizon=12, seed=3)
+    # next observation of step h is the observation of step h+1 on valid steps
+    mask = data["mask"]
+    both = mask[:, 1:] & mask[:, :-1]
+    assert torch.allclose(data["next", "observation"][:, :-1][both], data["observation"][:, 1:][both])
+    # positions integrate actions: p' = p + 0.1 a
+    step = data["next", "observation"][..., :2] - data["observation"][..., :2]
+    assert torch.allclose(step[mask], 0.1 * data["action"][mask], atol=1e-6)
+    assert torch.allclose(data["next", "reward"][mask], toy_reward(data["observation"], data["action"])[mask])
+    # replaying the first trajectory's actions in the env from its start gives the same rewards
+    env = ToyLineEnv(max_steps=12)
+    env.reset()
+    env._pos = data["observation"][0, 0, :2].clone()
+    n = int(mask[0].sum())
+    rewards = []
+    for h in range(n):
+        td = env.step(TensorDict({"action": data["action"][0, h]}, []))
+        rewards.append(td["next", "reward"])
+    assert torch.allclose(torch.stack(rewards), data["next", "reward"][0, :n], atol=1e-6)
+    assert bool(td["next", "done"]) == bool(data["next", "done"][0, n - 1])
+
+
+def test_toy_quality_orders_returns():
+    q = torch.tensor([1.0, 0.5, 0.0, -0.5])
+    data = make_toy_dataset(num_trajectories=4, horizon=32, seed=0, quality=q, noise=0.0)
+    ret = (data["next", "reward"].squeeze(-1) * data["mask"]).sum(-1)
+    assert torch.all(ret[:-1] > ret[1:])
+    assert ret[0] == pytest.approx(32.0, abs=1e-4)  # optimal return = horizon
+
+
+def test_validate_rejects_bad_input(toy_data):
+    with pytest.raises(ValueError, match="missing required key 'action'"):
+        validate_trajectories(toy_data.exclude("action"), name="bad.npz")
+    bad = toy_data.clone()
+    bad["observation"][0, 0, 0] = float("nan")
+    with pytest.raises(ValueError, match="NaN"):
+        validate_trajectories(bad)
+    # NaN on padded steps is ignored (padding is never read)
+    ok = toy_data.clone()
+    i = int((~ok["mask"]).nonzero()[0, 0])
+    j = int((~ok["mask"]).nonzero()[0, 1])
+    ok["observation"][i, j, 0] = float("nan")
+    validate_trajectories(ok)
+    with pytest.raises(ValueError, match="obs_dim=39"):
+        validate_trajectories(toy_data, obs_dim=39)
+    holes = toy_data.clone()
+    holes["mask"][0, 1] = False
+    holes["mask"][0, 2] = True
+    with pytest.raises(ValueError, match="prefix"):
+        validate_trajectories(holes)
+    with pytest.raises(ValueError, match="batch_size"):
+        validate_trajectories(toy_data[0])
+
+
+def test_save_load_atomic(tmp_path, toy_data):
+    path = save_trajectories(toy_data, tmp_path / "ds", meta={"env": "toy", "seed": 0})
+    td, meta = load_trajectories(path)
+    assert meta["env"] == "toy" and meta["num_trajectories"] == 64
+    assert (td == toy_data).all()
+    # a folder without meta.json (interrupted write) is not a dataset
+    os.remove(path / "meta.json")
+    with pytest.raises(FileNotFoundError, match="meta.json"):
+        load_trajectories(path)
+    # overwrite in place works and leaves no temp dirs behind
+    save_trajectories(toy_data[:3], tmp_path / "ds2")
+    save_trajectories(toy_data[:5], tmp_path / "ds2")
+    assert load_trajectories(tmp_path / "ds2")[0].batch_size[0] == 5
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
+    # wrong format version
+    m = json.loads((tmp_path / "ds2" / "meta.json").read_text())
+    m["format_version"] = 99
+    (tmp_path / "ds2" / "meta.json").write_text(json.dumps(m))
+    with pytest.raises(ValueError, match="format_version"):
+        load_trajectories(tmp_path / "ds2")
+
+
+def test_save_refuses_invalid_and_leaves_nothing(tmp_path, toy_data):
+    bad = toy_data.clone()
+    bad["action"][0, 0, 0] = float("inf")
+    with pytest.raises(ValueError):
+        save_trajectories(bad, tmp_path / "x")
+    assert not (tmp_path / "x").exists()
