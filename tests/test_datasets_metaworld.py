@@ -1,0 +1,114 @@
+"""Tests of the Meta-World dataset generator (IPL recipe), its cache, stats, registry and CLI."""
+import importlib.util
+from pathlib import Path
+
+import pytest
+import torch
+from tensordict import TensorDict
+
+from torchrl_ftb.data import validate_trajectories
+from torchrl_ftb.datasets import (
+    GROUPS,
+    dataset_stats,
+    format_stats,
+    get_dataset_generator,
+    make_metaworld_dataset,
+)
+from torchrl_ftb.datasets.metaworld import ACTION_CLIP, SUCCESS_STREAK, default_cache_dir
+from torchrl_ftb.testing import make_toy_dataset
+
+
+def test_registry_finds_metaworld_and_rejects_unknown():
+    assert get_dataset_generator("drawer-open-v3").name == "metaworld"
+    with pytest.raises(ValueError, match="no dataset generator"):
+        get_dataset_generator("not-an-env-v0")
+
+
+def test_bad_options_raise():
+    with pytest.raises(ValueError, match="valid v3 tasks"):
+        make_metaworld_dataset("button-press")
+    with pytest.raises(ValueError, match="episodes_per_group"):
+        make_metaworld_dataset("button-press-v3", episodes_per_group=0)
+
+
+def test_cache_dir_env_override(monkeypatch, tmp_path):
+    monkeypatch.setenv("TORCHRL_FTB_DATA", str(tmp_path))
+    assert default_cache_dir() == tmp_path
+
+
+def test_dataset_stats_matches_manual_computation():
+    td = make_toy_dataset(num_trajectories=6, horizon=10, seed=1)
+    per = TensorDict({"group": torch.tensor([0, 0, 1, 1, 1, 0])}, batch_size=[6])
+    stats = dataset_stats(td, per, groups=["a", "b"])
+    sel = per["group"] == 1
+    ret = (td["next", "reward"].squeeze(-1) * td["mask"]).sum(-1)
+    assert stats["b"]["episodes"] == 3 and stats["all"]["episodes"] == 6
+    assert stats["b"]["mean_return"] == pytest.approx(float(ret[sel].mean()), rel=1e-5)
+    assert stats["b"]["mean_length"] == pytest.approx(float(td["mask"][sel].sum(-1).float().mean()))
+    succ = td["next", "success"].squeeze(-1).any(-1).float()
+    assert stats["a"]["success_rate"] == pytest.approx(float(succ[~sel].mean()))
+    assert "mean_return" in format_stats(stats)
+
+
+@pytest.fixture(scope="module")
+def tiny_dataset(tmp_path_factory):
+    """1 noiseless episode per group, horizon 150 (the expert succeeds and stops early)."""
+    cache = tmp_path_factory.mktemp("mw_cache")
+    td, meta = make_metaworld_dataset("button-press-v3", episodes_per_group=1, noise=0.0, seed=0,
+                                      max_steps=150, cache_dir=cache, progress=False)
+    return td, meta, cache
+
+
+@pytest.mark.integration
+def test_generated_dataset_follows_conventions_and_recipe(tiny_dataset):
+    td, meta, _ = tiny_dataset
+    assert td.batch_size == (len(GROUPS), 150)
+    validate_trajectories(td, obs_dim=39, action_dim=4, require=[("next", "reward"), ("next", "success"), "state"])
+    per = meta["per_trajectory"]
+    assert per["group"].tolist() == [0, 1, 2, 3] and meta["groups"] == list(GROUPS)
+    assert meta["noise"] == 0.0 and meta["task"] == "button-press-v3" and meta["generator_version"] >= 1
+    mask = td["mask"]
+    assert float(td["action"][mask].abs().max()) <= ACTION_CLIP
+    assert td["state"].shape[-1] == meta["state_dim"] and float(td["state"][mask].abs().sum()) > 0
+    # expert: succeeds, then stops after exactly SUCCESS_STREAK consecutive success steps (truncated)
+    length = int(mask[0].sum())
+    succ = td["next", "success"][0, :length, 0]
+    assert length < 150 and bool(succ[-SUCCESS_STREAK:].all()) and not bool(succ[-SUCCESS_STREAK - 1])
+    assert bool(td["next", "truncated"][0, length - 1]) and not bool(td["next", "terminated"].any())
+    assert int(td["next", "done"].sum()) == len(GROUPS)  # one end per episode
+    # the random group does not solve the task and runs to the time limit
+    assert int(mask[2].sum()) == 150
+    # next observation of step h is the observation of step h + 1
+    assert torch.equal(td["next", "observation"][:, :-1][mask[:, 1:]], td["observation"][:, 1:][mask[:, 1:]])
+    # the cross-env episode is driven by another task's scripted policy
+    assert per["policy_task"][3] >= 0 and per["policy_task"][3] != per["policy_task"][0] and per["policy_task"][2] == -1
+    stats = dataset_stats(td, per)
+    assert stats["expert"]["success_rate"] == 1.0 and stats["random"]["success_rate"] == 0.0
+
+
+@pytest.mark.integration
+def test_cache_reload_is_identical_and_config_changes_the_key(tiny_dataset):
+    td, meta, cache = tiny_dataset
+    td2, meta2 = make_metaworld_dataset("button-press-v3", episodes_per_group=1, noise=0.0, seed=0,
+                                        max_steps=150, cache_dir=cache, progress=False)
+    assert meta2["path"] == meta["path"] and (td2 == td).all()
+    assert meta2["generation_seconds"] == meta["generation_seconds"]  # loaded, not regenerated
+    td3, meta3 = make_metaworld_dataset("button-press-v3", episodes_per_group=1, noise=0.5, seed=0,
+                                        max_steps=20, cache_dir=cache, progress=False)
+    assert meta3["path"] != meta["path"] and td3.batch_size == (4, 20)
+    # noise changes the expert's actions; the first observation (fixed goal, same seed) is the same
+    assert torch.equal(td3["observation"][0, 0], td["observation"][0, 0])
+    assert not torch.allclose(td3["action"][0, :20], td["action"][0, :20])
+
+
+@pytest.mark.integration
+def test_make_dataset_cli_prints_group_stats(tiny_dataset, capsys):
+    _, _, cache = tiny_dataset
+    path = Path(__file__).parents[1] / "recipes" / "make_dataset.py"
+    spec = importlib.util.spec_from_file_location("make_dataset_recipe", path)
+    cli = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(cli)
+    stats = cli.main(["--env", "button-press-v3", "--episodes-per-group", "1", "--noise", "0", "--seed", "0",
+                      "--max-steps", "150", "--out", str(cache), "--no-progress"])
+    out = capsys.readouterr().out
+    assert set(stats) == {*GROUPS, "all"} and "expert" in out and stats["expert"]["success_rate"] == 1.0

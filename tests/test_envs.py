@@ -1,0 +1,148 @@
+"""Tests of torchrl_ftb.envs: Meta-World / locomotion factories, scores, reward oracles."""
+import numpy as np
+import pytest
+import torch
+from tensordict import TensorDict
+
+from torchrl_ftb.envs import (
+    D4RL_REF_SCORES,
+    SuccessInfoReader,
+    d4rl_normalized_score,
+    dynamics_error,
+    locomotion_env_id,
+    locomotion_true_reward,
+    make_locomotion_env,
+    make_metaworld_env,
+    make_metaworld_gym_env,
+    metaworld_reward_error,
+    metaworld_tasks,
+    metaworld_true_reward,
+    oracle_step,
+    scripted_policy,
+)
+
+
+# ---------------------------------------------------------------- cheap (no simulator)
+def test_unknown_metaworld_task_lists_valid_tasks():
+    with pytest.raises(ValueError, match="button-press-v3"):
+        make_metaworld_env("button-press-v2")
+    assert "drawer-open-v3" in metaworld_tasks()
+
+
+def test_success_info_reader_reads_python_floats():
+    reader = SuccessInfoReader()
+    assert reader({"success": 1.0}, TensorDict())["success"].tolist() == [True]
+    assert reader({"success": 0.0}, TensorDict())["success"].tolist() == [False]
+    assert reader({}, TensorDict())["success"].dtype == torch.bool  # reset: no info
+
+
+def test_d4rl_normalized_score_reference_points():
+    for name, (lo, hi) in D4RL_REF_SCORES.items():
+        score = d4rl_normalized_score(f"{name}-medium-replay-v2", torch.tensor([lo, hi, (lo + hi) / 2]))
+        assert torch.allclose(score, torch.tensor([0.0, 100.0, 50.0]), atol=1e-4)
+    assert locomotion_env_id("Walker2d-v5") == "Walker2d-v5" and locomotion_env_id("hopper") == "Hopper-v5"
+    with pytest.raises(ValueError, match="hopper"):
+        d4rl_normalized_score("ant", 1.0)
+
+
+# ---------------------------------------------------------------- locomotion (MuJoCo)
+@pytest.fixture(scope="module")
+def hopper_rollout():
+    env = make_locomotion_env("hopper", seed=0)
+    torch.manual_seed(0)
+    return env.rollout(40)
+
+
+@pytest.mark.integration
+def test_locomotion_env_float32_and_oracle_is_exact(hopper_rollout):
+    td = hopper_rollout
+    assert td["observation"].dtype == torch.float32
+    # the observation clips velocities at +-10: the oracle is exact where they are inside
+    ok = td["observation"].abs().amax(-1) < 9.99
+    assert ok.sum() >= 5
+    nxt = oracle_step("hopper", td["observation"][ok], td["action"][ok])
+    assert torch.allclose(nxt, td["next", "observation"][ok], atol=1e-4)
+    reward = locomotion_true_reward("hopper", td["observation"][ok], td["action"][ok])
+    assert torch.allclose(reward, td["next", "reward"][ok], atol=1e-4)
+
+
+@pytest.mark.integration
+def test_dynamics_error_zero_on_real_data_and_positive_on_corrupted(hopper_rollout):
+    td = hopper_rollout
+    ok = td["observation"].abs().amax(-1) < 9.99
+    n = int(ok.long().cumprod(0).sum())  # prefix of steps with in-range velocities
+    traj = td[:n].unsqueeze(0).clone()
+    traj["mask"] = torch.ones(1, n, dtype=torch.bool)
+    err = dynamics_error("hopper", traj)
+    assert err.shape == (1, n) and float(err.max()) < 1e-4
+    bad = traj.clone()
+    bad["next", "observation"] = bad["next", "observation"] + 0.1
+    assert torch.allclose(dynamics_error("hopper", bad)[traj["mask"]].mean(), torch.tensor(0.1), atol=1e-3)
+    with pytest.raises(ValueError, match="observation"):
+        oracle_step("hopper", torch.zeros(3, 5), torch.zeros(3, 3))
+
+
+# ---------------------------------------------------------------- Meta-World
+@pytest.mark.integration
+def test_metaworld_env_specs_goal_modes_and_time_limit():
+    env = make_metaworld_env("button-press-v3", seed=0, max_episode_steps=6)
+    td = env.rollout(10, break_when_any_done=True)
+    assert td.batch_size == (6,)  # stops at the time limit
+    assert td["observation"].dtype == torch.float32 and td["observation"].shape[-1] == 39
+    assert td["next", "success"].dtype == torch.bool and td["next", "success"].shape == (6, 1)
+    assert bool(td["next", "truncated"][-1]) and not bool(td["next", "terminated"].any())
+    goals = [env.reset()["observation"][-3:] for _ in range(2)]
+    assert torch.equal(goals[0], goals[1])  # fixed goal
+    renv = make_metaworld_env("button-press-v3", seed=0, max_episode_steps=6, random_goal=True)
+    obs = [renv.reset()["observation"][4:7] for _ in range(3)]  # button placement is the random part
+    assert not torch.allclose(obs[0], obs[1]) and not torch.allclose(obs[1], obs[2])
+
+
+@pytest.fixture(scope="module")
+def button_press_episode():
+    """A noiseless scripted-expert episode of button-press (raw gymnasium loop, fast)."""
+    env = make_metaworld_gym_env("button-press-v3", seed=3, random_goal=True)
+    pi = scripted_policy("button-press-v3")
+    obs, _ = env.reset()
+    rows = []
+    for _ in range(120):
+        a = np.clip(pi(obs), -1 + 1e-5, 1 - 1e-5)
+        nxt, r, _, _, info = env.step(a)
+        rows.append((obs, a, nxt, r, info["success"]))
+        obs = nxt
+    o, a, n, r, s = (np.array(x) for x in zip(*rows))
+    h = len(r)
+    return TensorDict(
+        {"observation": torch.tensor(o, dtype=torch.float32)[None], "action": torch.tensor(a, dtype=torch.float32)[None],
+         "mask": torch.ones(1, h, dtype=torch.bool),
+         "next": {"observation": torch.tensor(n, dtype=torch.float32)[None],
+                  "reward": torch.tensor(r, dtype=torch.float32)[None, :, None],
+                  "success": torch.tensor(s > 0)[None, :, None]}},
+        batch_size=[1, h],
+    )
+
+
+@pytest.mark.integration
+def test_scripted_expert_succeeds(button_press_episode):
+    assert bool(button_press_episode["next", "success"].any())
+
+
+@pytest.mark.integration
+def test_metaworld_true_reward_matches_env_on_real_transitions(button_press_episode):
+    td = button_press_episode
+    err = metaworld_reward_error("button-press-v3", td)
+    assert err["reward_mae"] < 0.05 and err["return_rel_mae"] < 0.02
+    assert err["success_agreement"] > 0.98
+    # shifted observations (what a generated trajectory provides) are nearly as good
+    assert metaworld_reward_error("button-press-v3", td, use_next_observation=False)["reward_mae"] < 0.05
+    # a trajectory whose hand stays away from the button earns less than the expert
+    far = td.clone()
+    for key in ("observation", ("next", "observation")):
+        far[key][..., 0:3] = far[key][0, 0, 0:3]  # hand frozen at its start
+    r_far, s_far = metaworld_true_reward("button-press-v3", far["observation"], far["action"],
+                                         next_observation=far["next", "observation"])
+    r_true, _ = metaworld_true_reward("button-press-v3", td["observation"], td["action"],
+                                      next_observation=td["next", "observation"])
+    assert r_far.sum() < 0.5 * r_true.sum()
+    with pytest.raises(ValueError, match="observation"):
+        metaworld_true_reward("button-press-v3", torch.zeros(3, 38), torch.zeros(3, 4))

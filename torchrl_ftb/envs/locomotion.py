@@ -1,0 +1,211 @@
+"""MuJoCo locomotion (Hopper / Walker2d / HalfCheetah v5): envs, D4RL scores and an oracle.
+
+The observation of these envs is ``qpos[1:] ‖ qvel`` (the x position is left out, and it
+does not affect the dynamics), so the simulator state can be rebuilt from an observation:
+:func:`oracle_step` steps it, :func:`locomotion_true_reward` gives the exact reward of
+``(s, a)`` and :func:`dynamics_error` checks generated transitions against the simulator.
+One caveat: Hopper and Walker2d clip the velocities in the observation to ±10, so a state
+whose true velocity exceeded that is rebuilt with the clipped value.
+
+Example:
+    >>> import torch
+    >>> from torchrl_ftb.envs import make_locomotion_env, oracle_step
+    >>> env = make_locomotion_env("hopper", seed=0)
+    >>> td = env.rollout(3)
+    >>> nxt = oracle_step("hopper", td["observation"], td["action"])
+    >>> bool(torch.allclose(nxt, td["next", "observation"], atol=1e-4))
+    True
+"""
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+import torch
+from tensordict import TensorDictBase
+
+__all__ = [
+    "LOCOMOTION_ENVS",
+    "D4RL_REF_SCORES",
+    "locomotion_env_id",
+    "make_locomotion_env",
+    "d4rl_normalized_score",
+    "oracle_step",
+    "locomotion_true_reward",
+    "dynamics_error",
+]
+
+LOCOMOTION_ENVS = {"hopper": "Hopper-v5", "walker2d": "Walker2d-v5", "halfcheetah": "HalfCheetah-v5"}
+# D4RL reference returns (random, expert) used by its normalized score (see datasets.md).
+D4RL_REF_SCORES = {
+    "hopper": (-20.272305, 3234.3),
+    "halfcheetah": (-280.178953, 12135.0),
+    "walker2d": (1.629008, 4592.3),
+}
+
+
+def _short_name(name: str) -> str:
+    key = name.lower().replace("_", "").replace("-", "")
+    for short in LOCOMOTION_ENVS:
+        if key.startswith(short):
+            return short
+    raise ValueError(
+        f"unknown locomotion env {name!r}; valid: {', '.join(LOCOMOTION_ENVS)} "
+        f"(or {', '.join(LOCOMOTION_ENVS.values())}, or a D4RL id such as 'hopper-medium-v2')"
+    )
+
+
+def locomotion_env_id(name: str) -> str:
+    """Gymnasium id of a locomotion env from a short name, a gymnasium id or a D4RL id.
+
+    Example:
+        >>> locomotion_env_id("hopper"), locomotion_env_id("walker2d-medium-replay-v2")
+        ('Hopper-v5', 'Walker2d-v5')
+    """
+    return LOCOMOTION_ENVS[_short_name(name)]
+
+
+def make_locomotion_env(name: str, *, seed: int = 0, device: str | torch.device = "cpu"):
+    """A TorchRL locomotion env: ``GymEnv(<name>-v5)`` with float32 observations.
+
+    Args:
+        name: ``"hopper"``, ``"walker2d"``, ``"halfcheetah"`` or the gymnasium id.
+        seed: env seed.
+        device: torch device.
+
+    Example:
+        >>> env = make_locomotion_env("halfcheetah")
+        >>> env.rollout(2)["observation"].dtype
+        torch.float32
+    """
+    from torchrl.envs import DoubleToFloat, GymEnv, TransformedEnv
+
+    env = TransformedEnv(GymEnv(locomotion_env_id(name), device=device), DoubleToFloat())
+    env.set_seed(int(seed))
+    return env
+
+
+def d4rl_normalized_score(env_name: str, returns: torch.Tensor | np.ndarray | float) -> torch.Tensor:
+    """D4RL normalized score ``100 * (R - R_random) / (R_expert - R_random)``.
+
+    Example:
+        >>> float(d4rl_normalized_score("hopper", 3234.3))
+        100.0
+    """
+    lo, hi = D4RL_REF_SCORES[_short_name(env_name)]
+    r = torch.as_tensor(returns, dtype=torch.float64)
+    return (100.0 * (r - lo) / (hi - lo)).to(torch.float32)
+
+
+@functools.lru_cache(maxsize=4)
+def _sim(env_id: str):
+    import gymnasium as gym
+
+    env = gym.make(env_id)
+    env.reset(seed=0)
+    return env.unwrapped
+
+
+def _set_from_obs(u, obs: np.ndarray) -> None:
+    nq = u.model.nq
+    qpos = np.concatenate([[0.0], obs[: nq - 1]])
+    qvel = obs[nq - 1 :]
+    u.set_state(qpos, qvel)
+
+
+def _flat(x, name: str, dim: int | None = None) -> tuple[np.ndarray, tuple]:
+    arr = x.detach().cpu().double().numpy() if isinstance(x, torch.Tensor) else np.asarray(x, np.float64)
+    if dim is not None and arr.shape[-1] != dim:
+        raise ValueError(f"{name}: last dimension {arr.shape[-1]} != {dim} expected by the env")
+    return arr.reshape(-1, arr.shape[-1]), arr.shape[:-1]
+
+
+def _check_dims(u, obs: np.ndarray, act: np.ndarray, env_id: str) -> None:
+    obs_dim = u.model.nq - 1 + u.model.nv
+    if obs.shape[-1] != obs_dim:
+        raise ValueError(f"observation: last dimension {obs.shape[-1]} != {obs_dim} of {env_id}")
+    if act.shape[-1] != u.model.nu:
+        raise ValueError(f"action: last dimension {act.shape[-1]} != {u.model.nu} of {env_id}")
+    if obs.shape[0] != act.shape[0]:
+        raise ValueError(f"observation and action batch shapes differ ({obs.shape[0]} vs {act.shape[0]})")
+
+
+def oracle_step(env_name: str, observation: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+    """True next observation of ``(s, a)``: rebuild the MuJoCo state from ``s`` and step.
+
+    Args:
+        env_name: locomotion env (see :func:`locomotion_env_id`).
+        observation: ``[..., obs_dim]``.
+        action: ``[..., act_dim]`` (same leading shape).
+
+    Returns:
+        ``[..., obs_dim]`` float32 next observations.
+    """
+    env_id = locomotion_env_id(env_name)
+    u = _sim(env_id)
+    obs, lead = _flat(observation, "observation")
+    act, _ = _flat(action, "action")
+    _check_dims(u, obs, act, env_id)
+    out = np.empty_like(obs)
+    for i in range(len(obs)):
+        _set_from_obs(u, obs[i])
+        u.do_simulation(np.clip(act[i], -1.0, 1.0), u.frame_skip)
+        out[i] = u._get_obs()
+    return torch.from_numpy(out).float().reshape(*lead, obs.shape[-1])
+
+
+def locomotion_true_reward(env_name: str, observation: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+    """Exact env reward ``r(s, a)`` of locomotion transitions (shape ``[..., 1]``, float32).
+
+    The simulator is reset to each observation (x = 0, which does not change the reward)
+    and stepped with the env's own ``step``; the next state is then a function of
+    ``(s, a)``, so no next observation is needed (compare generated next observations with
+    :func:`dynamics_error`).
+
+    Example:
+        >>> env = make_locomotion_env("hopper")
+        >>> td = env.rollout(4)
+        >>> r = locomotion_true_reward("hopper", td["observation"], td["action"])
+        >>> bool(torch.allclose(r, td["next", "reward"], atol=1e-4))
+        True
+    """
+    env_id = locomotion_env_id(env_name)
+    u = _sim(env_id)
+    obs, lead = _flat(observation, "observation")
+    act, _ = _flat(action, "action")
+    _check_dims(u, obs, act, env_id)
+    out = np.empty(len(obs))
+    for i in range(len(obs)):
+        _set_from_obs(u, obs[i])
+        _, reward, *_ = u.step(act[i])
+        out[i] = reward
+    return torch.from_numpy(out).float().reshape(*lead, 1)
+
+
+def dynamics_error(env_name: str, trajectories: TensorDictBase) -> torch.Tensor:
+    """Per-step dynamics error ``||s_{h+1} - ŝ_{h+1}||_1 / |S|`` of a trajectory batch.
+
+    ``ŝ_{h+1}`` is :func:`oracle_step` of ``(s_h, a_h)``; ``s_{h+1}`` is
+    ``("next", "observation")`` if present, else ``observation`` shifted by one step (the
+    last valid step then has no target and gets error 0 and is masked out).
+
+    Args:
+        env_name: locomotion env name.
+        trajectories: ``[N, H]`` trajectory batch with a ``"mask"``.
+
+    Returns:
+        ``[N, H]`` float32 errors, 0 on steps without a target (check ``mask``); average
+        over valid steps with ``err[valid].mean()``.
+    """
+    obs = trajectories.get("observation")
+    mask = trajectories.get("mask")
+    if ("next", "observation") in trajectories.keys(True):
+        target, valid = trajectories.get(("next", "observation")), mask
+    else:
+        target = torch.cat([obs[:, 1:], obs[:, -1:]], 1)
+        valid = mask & torch.cat([mask[:, 1:], torch.zeros_like(mask[:, :1])], 1)
+    err = torch.zeros(mask.shape, dtype=torch.float32)
+    if valid.any():
+        pred = oracle_step(env_name, obs[valid], trajectories.get("action")[valid])
+        err[valid.cpu()] = (pred - target[valid].cpu().float()).abs().mean(-1)
+    return err.to(obs.device)

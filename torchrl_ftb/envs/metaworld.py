@@ -1,0 +1,426 @@
+"""Meta-World v3 environments for TorchRL, scripted experts and a ground-truth reward oracle.
+
+* :func:`make_metaworld_env` — a torchrl env (``GymWrapper`` around ``Meta-World/MT1``)
+  with float32 observations and ``("next", "success")`` as bool ``[1]``.
+* :func:`scripted_policy` — the task's scripted expert (``metaworld.policies``).
+* :func:`metaworld_true_reward` — the true reward/success of (generated) observation and
+  action sequences, by driving a simulator along the observed hand path (see its docstring
+  for what is exact and what is approximated) and :func:`metaworld_reward_error`, which
+  measures that approximation on real transitions whose reward is known.
+
+Example:
+    >>> from torchrl_ftb.envs import make_metaworld_env
+    >>> env = make_metaworld_env("button-press-v3", seed=0, max_episode_steps=5)
+    >>> td = env.rollout(5)
+    >>> td["next", "success"].shape, td["observation"].dtype
+    (torch.Size([5, 1]), torch.float32)
+"""
+from __future__ import annotations
+
+import functools
+import warnings
+from typing import Any, Callable
+
+import numpy as np
+import torch
+from tensordict import TensorDictBase
+from torchrl.data import Categorical, Composite
+from torchrl.envs import DoubleToFloat, GymWrapper, TransformedEnv
+from torchrl.envs.gym_like import BaseInfoDictReader
+
+__all__ = [
+    "METAWORLD_MAX_EPISODE_STEPS",
+    "SuccessInfoReader",
+    "metaworld_tasks",
+    "check_metaworld_task",
+    "make_metaworld_gym_env",
+    "configure_goal",
+    "make_metaworld_env",
+    "scripted_policy",
+    "metaworld_true_reward",
+    "metaworld_reward_error",
+]
+
+METAWORLD_MAX_EPISODE_STEPS = 500
+
+
+def _quiet_metaworld() -> None:
+    # Meta-World observations leave their declared bounds (dims 36-38) and gymnasium's
+    # passive checker warns on every step; the warnings carry no information for us.
+    warnings.filterwarnings("ignore", message=".*is not within the observation space.*")
+    warnings.filterwarnings("ignore", message=".*Box observation space maximum and minimum.*")
+    warnings.filterwarnings("ignore", message=".*env.get_wrapper_attr.*")
+
+
+@functools.lru_cache(maxsize=1)
+def metaworld_tasks() -> tuple[str, ...]:
+    """Meta-World v3 task names that have a scripted expert policy (sorted).
+
+    Example:
+        >>> "button-press-v3" in metaworld_tasks()
+        True
+    """
+    import metaworld
+    from metaworld.policies import ENV_POLICY_MAP
+
+    return tuple(sorted(set(metaworld.MT1.ENV_NAMES) & set(ENV_POLICY_MAP)))
+
+
+def check_metaworld_task(task: str) -> str:
+    """Return ``task`` if it is a v3 task with a scripted policy, else raise ``ValueError``."""
+    tasks = metaworld_tasks()
+    if task not in tasks:
+        raise ValueError(f"unknown Meta-World task {task!r}; valid v3 tasks: {', '.join(tasks)}")
+    return task
+
+
+def scripted_policy(task: str) -> Callable[[np.ndarray], np.ndarray]:
+    """The scripted expert of a Meta-World v3 task: ``policy(obs) -> action`` (numpy, 4-d).
+
+    Example:
+        >>> pi = scripted_policy("button-press-v3")
+        >>> pi(np.zeros(39)).shape
+        (4,)
+    """
+    from metaworld.policies import ENV_POLICY_MAP
+
+    return ENV_POLICY_MAP[check_metaworld_task(task)]().get_action
+
+
+def _find_wrapper(env, name: str):
+    e = env
+    while e is not None:
+        if type(e).__name__ == name:
+            return e
+        e = getattr(e, "env", None)
+    return None
+
+
+def configure_goal(gym_env, *, random_goal: bool, seed: int) -> None:
+    """Fix or randomise the goal of a ``Meta-World/MT1`` gymnasium env (in place).
+
+    ``random_goal=False``: every reset uses the first of MT1's goals for ``seed`` (so an env
+    and the dataset's expert group built with the same seed share their goal).
+    ``random_goal=True``: each reset draws a fresh goal/object placement from the task's
+    random-reset space with a generator seeded by ``seed`` (Meta-World's own rejection
+    sampling applies). MT1's own "pick one of 50 goals" resampling is switched off.
+    """
+    u = gym_env.unwrapped
+    select = _find_wrapper(gym_env, "RandomTaskSelectWrapper")
+    select.toggle_sample_tasks_on_reset(False)
+    u.set_task(select.tasks[0])
+    if random_goal:
+        u._freeze_rand_vec = False
+        u.seeded_rand_vec = True
+        u.np_random = np.random.default_rng(seed)
+
+
+def _set_time_limit(gym_env, max_episode_steps: int) -> None:
+    u = gym_env.unwrapped
+    u.max_path_length = max(int(max_episode_steps), METAWORLD_MAX_EPISODE_STEPS)
+    limit = _find_wrapper(gym_env, "TimeLimit")
+    limit._max_episode_steps = int(max_episode_steps)
+
+
+def make_metaworld_gym_env(task: str, *, seed: int = 0, max_episode_steps: int = 500,
+                           random_goal: bool = False):
+    """The plain gymnasium ``Meta-World/MT1`` env for ``task`` with goal mode and time limit set.
+
+    Used by :func:`make_metaworld_env` and by the dataset generator (which drives the raw env
+    for speed).
+    """
+    import gymnasium as gym
+    import metaworld  # noqa: F401  (registers the Meta-World/* ids)
+
+    check_metaworld_task(task)
+    if max_episode_steps < 1:
+        raise ValueError(f"max_episode_steps must be >= 1, got {max_episode_steps}")
+    _quiet_metaworld()
+    env = gym.make("Meta-World/MT1", env_name=task, seed=int(seed))
+    configure_goal(env, random_goal=random_goal, seed=int(seed))
+    _set_time_limit(env, max_episode_steps)
+    return env
+
+
+class SuccessInfoReader(BaseInfoDictReader):
+    """Reads Meta-World's ``info["success"]`` (a Python float) as a bool ``[1]`` entry.
+
+    ``default_info_dict_reader`` crashes on Meta-World's Python floats, hence this reader.
+
+    Example:
+        >>> from tensordict import TensorDict
+        >>> SuccessInfoReader()({"success": 1.0}, TensorDict())["success"]
+        tensor([True])
+    """
+
+    def __init__(self, key: str = "success"):
+        self.key = key
+        self._spec = Composite({key: Categorical(2, shape=(1,), dtype=torch.bool)}, shape=[])
+
+    def __call__(self, info_dict: dict[str, Any], tensordict: TensorDictBase) -> TensorDictBase:
+        value = bool(info_dict.get(self.key, 0.0)) if info_dict else False
+        tensordict.set(self.key, torch.tensor([value], dtype=torch.bool, device=tensordict.device))
+        return tensordict
+
+    @property
+    def info_spec(self) -> Composite:
+        return self._spec
+
+
+def make_metaworld_env(
+    task: str,
+    *,
+    seed: int = 0,
+    max_episode_steps: int = 500,
+    device: str | torch.device = "cpu",
+    random_goal: bool = False,
+):
+    """A TorchRL Meta-World v3 env with float32 observations and ``("next", "success")``.
+
+    Args:
+        task: a v3 task name, e.g. ``"button-press-v3"`` (see :func:`metaworld_tasks`).
+        seed: seeds the goal list, the env and (if ``random_goal``) the goal draws.
+        max_episode_steps: time limit (truncation); Meta-World's default is 500.
+        device: torch device of the env's outputs.
+        random_goal: draw a new goal at every reset (else a fixed goal, see
+            :func:`configure_goal`).
+
+    Returns:
+        A ``TransformedEnv(GymWrapper(...), DoubleToFloat())``.
+
+    Raises:
+        ValueError: unknown task (the message lists the valid ones).
+
+    Example:
+        >>> env = make_metaworld_env("drawer-open-v3", max_episode_steps=3)
+        >>> env.rollout(3)["next", "observation"].shape
+        torch.Size([3, 39])
+    """
+    gym_env = make_metaworld_gym_env(task, seed=seed, max_episode_steps=max_episode_steps,
+                                     random_goal=random_goal)
+    base = GymWrapper(gym_env, device=device)
+    base.set_info_dict_reader(SuccessInfoReader())
+    env = TransformedEnv(base, DoubleToFloat())
+    env.set_seed(int(seed))
+    # set_seed reseeds the unwrapped env's np_random: re-apply the goal generator
+    configure_goal(gym_env, random_goal=random_goal, seed=int(seed))
+    return env
+
+
+# --------------------------------------------------------------------------------------
+# ground-truth reward of observation/action sequences
+# --------------------------------------------------------------------------------------
+class _SequenceRewarder:
+    """Replays an observation sequence in a Meta-World simulator to evaluate its reward.
+
+    What is matched: the reset (object/goal placement) is fitted to the first observation
+    through the task's random-reset vector (a linear least-squares fit, exact for the tasks
+    whose placement is affine in that vector); the hand follows the observed hand positions
+    (each step the mocap target is re-anchored at the observed hand plus the simulator's
+    current mocap lead, then moved by the action like the env does); the gripper is driven by
+    the action; the goal (``_target_pos``) is taken from ``obs[-3:]``. Object poses are read by
+    Meta-World's rewards from the observation itself. Not matched: contacts/forces of
+    objects that the simulated hand did not move in the same way (grasp-type rewards).
+    """
+
+    def __init__(self, task: str):
+        self.task = check_metaworld_task(task)
+        self.env = make_metaworld_gym_env(task, seed=0)
+        self.u = self.env.unwrapped
+        self.u.reset()
+        self._fit_jacobian()
+
+    def _features(self, obs: np.ndarray) -> np.ndarray:
+        return np.concatenate([obs[4:7], obs[11:14], obs[-3:]])
+
+    def _reset_with(self, rand_vec: np.ndarray) -> np.ndarray:
+        u = self.u
+        u._freeze_rand_vec = False
+        u.seeded_rand_vec = True
+        u.np_random = _FirstThenRandom(rand_vec)
+        obs, _ = u.reset()
+        return obs
+
+    def _fit_jacobian(self) -> None:
+        space = self.u._random_reset_space
+        self.low, self.high = space.low.astype(np.float64), space.high.astype(np.float64)
+        self.center = 0.5 * (self.low + self.high)
+        f0 = self._features(self._reset_with(self.center))
+        cols = []
+        for i in range(self.center.size):
+            d = np.zeros_like(self.center)
+            d[i] = max(1e-3, 0.25 * (self.high[i] - self.low[i]))
+            cols.append((self._features(self._reset_with(self.center + d)) - f0) / d[i])
+        self.f0, self.jac = f0, np.stack(cols, 1)
+
+    def fit_reset(self, obs0: np.ndarray) -> np.ndarray:
+        delta, *_ = np.linalg.lstsq(self.jac, self._features(obs0) - self.f0, rcond=None)
+        vec = np.clip(self.center + delta, self.low, self.high)
+        return self._reset_with(vec)
+
+    def __call__(self, obs: np.ndarray, act: np.ndarray, next_obs: np.ndarray):
+        import mujoco
+
+        u = self.u
+        self.fit_reset(obs[0])
+        mocap_id = u.model.body_mocapid[u.data.body("mocap").id]
+        rewards = np.zeros(len(obs))
+        success = np.zeros(len(obs), dtype=bool)
+        for h in range(len(obs)):
+            a = np.clip(act[h].astype(np.float64), -1.0, 1.0)
+            lead = u.data.mocap_pos[mocap_id] - u.get_endeff_pos()
+            target = obs[h, 0:3] + lead + a[:3] * u.action_scale
+            u.data.mocap_pos[mocap_id] = np.clip(target, u.mocap_low, u.mocap_high)
+            u.data.mocap_quat[mocap_id] = np.array([1, 0, 1, 0])
+            u.do_simulation([a[-1], -a[-1]], n_frames=u.frame_skip)
+            mujoco.mj_forward(u.model, u.data)
+            u._target_pos = next_obs[h, -3:].astype(np.float64).copy()
+            for site in u._target_site_config:
+                u._set_pos_site(*site)
+            r, info = u.evaluate_state(next_obs[h].astype(np.float64), a)
+            rewards[h] = float(r)
+            success[h] = bool(info["success"])
+        return rewards, success
+
+
+class _FirstThenRandom:
+    """Stand-in for ``np_random`` at reset: yields the fitted reset vector first, then random
+    draws (so Meta-World's rejection loops still terminate if the fitted vector is rejected)."""
+
+    def __init__(self, first: np.ndarray):
+        self.first = np.asarray(first, dtype=np.float64)
+        self.rng = np.random.default_rng(0)
+
+    def uniform(self, low, high, size=None):
+        if self.first is not None:
+            out, self.first = self.first, None
+            return out
+        return self.rng.uniform(low, high, size=size)
+
+
+@functools.lru_cache(maxsize=8)
+def _rewarder(task: str) -> _SequenceRewarder:
+    return _SequenceRewarder(task)
+
+
+def _as_batch(x: torch.Tensor | np.ndarray, name: str, dim: int) -> np.ndarray:
+    x = x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
+    if x.ndim not in (2, 3) or x.shape[-1] != dim:
+        raise ValueError(f"{name}: expected shape [H, {dim}] or [N, H, {dim}], got {list(x.shape)}")
+    return x[None] if x.ndim == 2 else x
+
+
+def metaworld_true_reward(
+    task: str,
+    observation: torch.Tensor,
+    action: torch.Tensor,
+    *,
+    next_observation: torch.Tensor | None = None,
+    mask: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Ground-truth Meta-World reward and success of observation/action sequences.
+
+    Meta-World's reward of step ``h`` is ``evaluate_state(s_{h+1}, a_h)`` on the *next*
+    observation; it also reads simulator quantities (finger positions, initial gripper
+    position, reset placement). A simulator is therefore driven along the sequence (see
+    :class:`_SequenceRewarder`): exact up to the hand-tracking and contact approximations,
+    whose error :func:`metaworld_reward_error` measures on real transitions.
+
+    Args:
+        task: v3 task name.
+        observation: ``[H, 39]`` or ``[N, H, 39]`` states ``s_h``.
+        action: ``[H, 4]`` or ``[N, H, 4]`` actions ``a_h``.
+        next_observation: ``s_{h+1}``; if ``None`` the sequence is shifted by one step and
+            the last step reuses its own observation (an approximation on that step only).
+        mask: optional ``[N, H]`` valid-step mask; padded steps get reward 0 / False.
+
+    Returns:
+        ``(reward, success)`` shaped ``[..., H, 1]`` (float32 / bool), like the inputs.
+
+    Example:
+        >>> obs, act = torch.zeros(3, 39), torch.zeros(3, 4)
+        >>> r, s = metaworld_true_reward("button-press-v3", obs, act)
+        >>> r.shape, s.dtype
+        (torch.Size([3, 1]), torch.bool)
+    """
+    squeeze = observation.ndim == 2
+    obs = _as_batch(observation, "observation", 39)
+    act = _as_batch(action, "action", 4)
+    if next_observation is None:
+        nxt = np.concatenate([obs[:, 1:], obs[:, -1:]], 1)
+    else:
+        nxt = _as_batch(next_observation, "next_observation", 39)
+    if act.shape[:2] != obs.shape[:2] or nxt.shape != obs.shape:
+        raise ValueError(
+            f"observation {list(obs.shape)}, action {list(act.shape)} and next_observation "
+            f"{list(nxt.shape)} do not share [N, H]"
+        )
+    n, h = obs.shape[:2]
+    m = np.ones((n, h), dtype=bool) if mask is None else _mask_np(mask, n, h)
+    rewards = np.zeros((n, h), dtype=np.float32)
+    success = np.zeros((n, h), dtype=bool)
+    rewarder = _rewarder(task)
+    for i in range(n):
+        length = int(m[i].sum())
+        if length == 0:
+            continue
+        r, s = rewarder(obs[i, :length], act[i, :length], nxt[i, :length])
+        rewards[i, :length], success[i, :length] = r, s
+    r_t, s_t = torch.from_numpy(rewards)[..., None], torch.from_numpy(success)[..., None]
+    return (r_t[0], s_t[0]) if squeeze else (r_t, s_t)
+
+
+def _mask_np(mask, n: int, h: int) -> np.ndarray:
+    m = mask.detach().cpu().numpy() if isinstance(mask, torch.Tensor) else np.asarray(mask)
+    m = m.reshape(-1, m.shape[-1]) if m.ndim == 1 else m
+    if m.shape != (n, h):
+        raise ValueError(f"mask: expected shape [{n}, {h}], got {list(m.shape)}")
+    return m.astype(bool)
+
+
+def metaworld_reward_error(
+    task: str,
+    trajectories: TensorDictBase,
+    *,
+    use_next_observation: bool = True,
+) -> dict[str, float]:
+    """Error of :func:`metaworld_true_reward` on real transitions whose reward is known.
+
+    Args:
+        task: v3 task name the data come from.
+        trajectories: ``[N, H]`` trajectory batch with ``("next", "reward")`` (and
+            ``("next", "observation")``; ``("next", "success")`` optional).
+        use_next_observation: score with the recorded next observations (``True``) or with
+            the shifted observation sequence (what a generated trajectory provides).
+
+    Returns:
+        ``{"reward_mae", "reward_max_abs", "return_mae", "return_rel_mae",
+        "success_agreement", "num_steps"}`` (per-step and per-trajectory errors; the
+        return error is relative to the mean absolute true return).
+
+    Example:
+        >>> from torchrl_ftb.datasets import make_metaworld_dataset  # doctest: +SKIP
+        >>> td, _ = make_metaworld_dataset("button-press-v3", episodes_per_group=2)  # doctest: +SKIP
+        >>> metaworld_reward_error("button-press-v3", td[:4])["reward_mae"] < 0.5  # doctest: +SKIP
+        True
+    """
+    if ("next", "reward") not in trajectories.keys(True):
+        raise ValueError("trajectories: missing ('next', 'reward') — the error needs the true reward")
+    mask = trajectories.get("mask")
+    nxt = trajectories.get(("next", "observation")) if use_next_observation else None
+    r, s = metaworld_true_reward(task, trajectories.get("observation"), trajectories.get("action"),
+                                 next_observation=nxt, mask=mask)
+    true_r = trajectories.get(("next", "reward")).float()
+    diff = (r - true_r).squeeze(-1).abs()[mask]
+    ret, true_ret = (r.squeeze(-1) * mask).sum(-1), (true_r.squeeze(-1) * mask).sum(-1)
+    out = {
+        "reward_mae": float(diff.mean()),
+        "reward_max_abs": float(diff.max()),
+        "return_mae": float((ret - true_ret).abs().mean()),
+        "return_rel_mae": float((ret - true_ret).abs().mean() / true_ret.abs().mean().clamp_min(1e-8)),
+        "num_steps": int(mask.sum()),
+    }
+    if ("next", "success") in trajectories.keys(True):
+        true_s = trajectories.get(("next", "success")).squeeze(-1)[mask]
+        out["success_agreement"] = float((s.squeeze(-1)[mask] == true_s).float().mean())
+    return out
