@@ -1,1 +1,43 @@
-"""preference stage."""
+"""Preference stage: score model, Bradley–Terry loss, K-means blocks, pair samplers, metrics.
+
+Preference augmentation (paper §3.2, Alg. 2): train ``s_psi`` on the labels
+(:func:`train_score_model`), score every trajectory (:func:`score_trajectories`), cluster the
+scores into ascending blocks (:func:`make_blocks`) and sample adjacent-block pairs for the
+diffuser (:func:`make_block_pair_buffer`).
+"""
+from torchrl_ftb.preference.blocks import BlockWarning, make_blocks
+from torchrl_ftb.preference.loss import BradleyTerryLoss, bradley_terry_nll, preference_accuracy
+from torchrl_ftb.preference.metrics import (
+    correlations,
+    pairwise_accuracy,
+    plot_preference_scatter,
+    preference_metrics,
+)
+from torchrl_ftb.preference.pairs import (
+    BlockPairSampler,
+    PairToConditionTarget,
+    make_block_pair_buffer,
+    make_labeled_pair_buffer,
+)
+from torchrl_ftb.preference.score import ScoreModel, score_trajectories
+from torchrl_ftb.preference.train import split_labels, train_score_model
+
+__all__ = [
+    "BlockPairSampler",
+    "BlockWarning",
+    "BradleyTerryLoss",
+    "PairToConditionTarget",
+    "ScoreModel",
+    "bradley_terry_nll",
+    "correlations",
+    "make_block_pair_buffer",
+    "make_blocks",
+    "make_labeled_pair_buffer",
+    "pairwise_accuracy",
+    "plot_preference_scatter",
+    "preference_accuracy",
+    "preference_metrics",
+    "score_trajectories",
+    "split_labels",
+    "train_score_model",
+]

@@ -1,0 +1,239 @@
+"""Pair sampling for the trajectory diffuser, as torchrl replay-buffer components.
+
+* Preference augmentation (Eq. 5): :class:`BlockPairSampler` draws ``k`` uniformly over the
+  ``K - 1`` adjacent block pairs, then ``tau0 ~ U(B_k)`` and ``tau1 ~ U(B_{k+1})``.
+* Naive variant (Eq. 3, the ablation): only the labelled pairs, worse = condition, better =
+  target, ties skipped (:func:`make_labeled_pair_buffer`).
+
+Both buffers hold trajectories in a :class:`~torchrl.data.LazyTensorStorage` and return the
+same pair batch: a TensorDict ``[B]`` with sub-TensorDicts ``"condition"`` (``tau0``) and
+``"target"`` (``tau1``), each ``[B, H]``. The block buffer also sets ``"index"`` ``[B, 2]``
+(dataset indices of condition/target) and ``"block"`` ``[B]`` (= ``k``, 0-based).
+The samplers return index pairs ``[B, 2]``; :class:`PairToConditionTarget` (a replay-buffer
+transform) turns the fetched ``[B, 2, H]`` data into the pair batch.
+
+Example:
+    >>> import torch
+    >>> from torchrl_ftb.testing import make_toy_dataset
+    >>> trajs = make_toy_dataset(num_trajectories=12, horizon=8, seed=0)
+    >>> blocks = torch.arange(12) // 4  # 3 blocks of 4
+    >>> rb = make_block_pair_buffer(trajs, blocks, batch_size=5, seed=0)
+    >>> batch = rb.sample()
+    >>> batch["condition"].batch_size, batch["target"].batch_size
+    (torch.Size([5, 8]), torch.Size([5, 8]))
+    >>> bool((blocks[batch["index"][:, 1]] == blocks[batch["index"][:, 0]] + 1).all())
+    True
+"""
+from __future__ import annotations
+
+from typing import Any, Sequence
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.utils import NestedKey
+from torchrl.data import LazyTensorStorage, RandomSampler, TensorDictReplayBuffer
+from torchrl.data.replay_buffers.samplers import Sampler
+from torchrl.data.replay_buffers.storages import Storage
+from torchrl.envs.transforms import Transform
+
+from torchrl_ftb.data.trajectories import validate_trajectories
+
+__all__ = [
+    "BlockPairSampler",
+    "PairToConditionTarget",
+    "make_block_pair_buffer",
+    "make_labeled_pair_buffer",
+]
+
+
+class BlockPairSampler(Sampler):
+    """Samples index pairs ``(i0, i1)`` with ``i0 ~ U(B_k)``, ``i1 ~ U(B_{k+1})``, ``k ~ U{0..K-2}``.
+
+    Uses the replay buffer's generator (``_rng``) when it has one, so a seeded buffer is
+    reproducible. Works on a 1-D storage whose item ``i`` is trajectory ``i`` (e.g. a
+    :class:`~torchrl.data.LazyTensorStorage` filled with an ``[N, H]`` batch).
+
+    Args:
+        block_ids: ``int64 [N]`` block of each stored trajectory (from :func:`make_blocks`),
+            contiguous ids ``0..K-1`` with ``K >= 2``, every block non-empty.
+
+    Returns (from :meth:`sample`):
+        ``index`` ``[B, 2]`` and info ``{"block": k [B]}``.
+    """
+
+    def __init__(self, block_ids: torch.Tensor) -> None:
+        block_ids = torch.as_tensor(block_ids)
+        if block_ids.ndim != 1 or block_ids.dtype not in (torch.int64, torch.int32):
+            raise ValueError(f"BlockPairSampler: block_ids must be a 1-D integer tensor, got {block_ids.dtype} {list(block_ids.shape)}")
+        block_ids = block_ids.long().cpu()
+        if block_ids.numel() == 0 or int(block_ids.min()) < 0:
+            raise ValueError("BlockPairSampler: block_ids must be non-empty and >= 0")
+        counts = torch.bincount(block_ids)
+        if counts.numel() < 2:
+            raise ValueError("BlockPairSampler: need at least 2 blocks to form adjacent pairs")
+        if bool((counts == 0).any()):
+            raise ValueError(f"BlockPairSampler: block ids must be contiguous; empty blocks {torch.nonzero(counts == 0).flatten().tolist()}")
+        self.block_ids = block_ids
+        self.num_blocks = int(counts.numel())
+        self._counts = counts
+        self._starts = torch.cumsum(counts, 0) - counts
+        self._members = torch.argsort(block_ids, stable=True)  # trajectories grouped by block
+
+    def _draw(self, block: torch.Tensor) -> torch.Tensor:
+        u = torch.rand(block.shape, generator=self._rng)
+        offset = (u * self._counts[block]).long().clamp(max=self._counts[block] - 1)
+        return self._members[self._starts[block] + offset]
+
+    def sample(self, storage: Storage, batch_size: int) -> tuple[torch.Tensor, dict]:
+        if len(storage) != self.block_ids.numel():
+            raise ValueError(
+                f"BlockPairSampler: storage holds {len(storage)} trajectories but block_ids has "
+                f"{self.block_ids.numel()} entries"
+            )
+        k = torch.randint(0, self.num_blocks - 1, (batch_size,), generator=self._rng)
+        index = torch.stack([self._draw(k), self._draw(k + 1)], -1)
+        return index, {"block": k}
+
+    def _empty(self) -> None:
+        pass
+
+    def dumps(self, path) -> None:  # state is the constructor argument only
+        pass
+
+    def loads(self, path) -> None:
+        pass
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"block_ids": self.block_ids}
+
+    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        self.__init__(state_dict["block_ids"])
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(num_blocks={self.num_blocks}, sizes={self._counts.tolist()})"
+
+
+class PairToConditionTarget(Transform):
+    """Replay-buffer transform: fetched pairs ``[B, 2, H]`` -> ``[B]`` with ``condition``/``target``.
+
+    Item ``[:, 0]`` (the worse trajectory) becomes ``"condition"``, item ``[:, 1]``
+    (the better) ``"target"``.
+
+    Args:
+        keys: entries to keep in each sub-TensorDict (default: all).
+
+    Example:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> td = TensorDict({"observation": torch.randn(4, 2, 6, 3)}, [4, 2, 6])
+        >>> out = PairToConditionTarget()(td)
+        >>> out["target", "observation"].shape
+        torch.Size([4, 6, 3])
+    """
+
+    def __init__(self, *, keys: Sequence[NestedKey] | None = None) -> None:
+        super().__init__(in_keys=[], out_keys=[])
+        self.keys = None if keys is None else list(keys)
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        if tensordict.batch_dims < 2 or tensordict.batch_size[1] != 2:
+            raise ValueError(f"PairToConditionTarget: expected a [B, 2, ...] batch, got {list(tensordict.batch_size)}")
+        data = tensordict if self.keys is None else tensordict.select(*self.keys)
+        return TensorDict(
+            {"condition": data[:, 0], "target": data[:, 1]},
+            batch_size=tensordict.batch_size[:1],
+            device=tensordict.device,
+        )
+
+    def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
+        return tensordict
+
+
+def _pair_buffer(data: TensorDictBase, sampler: Sampler, *, batch_size: int, seed: int | None,
+                 keys: Sequence[NestedKey] | None) -> TensorDictReplayBuffer:
+    if batch_size < 1:
+        raise ValueError(f"pair buffer: batch_size must be >= 1, got {batch_size}")
+    if keys is not None:  # store only what the pairs carry (no copy of unused dataset keys)
+        missing = [k for k in keys if k not in data.keys(True)]
+        if missing:
+            raise ValueError(f"pair buffer: the trajectories have no {missing} (has {sorted(map(str, data.keys(True, True)))})")
+        data = data.select(*keys)
+    rb = TensorDictReplayBuffer(
+        storage=LazyTensorStorage(data.batch_size[0], ndim=1, device=data.device or "cpu"),
+        sampler=sampler,
+        batch_size=batch_size,
+        generator=None if seed is None else torch.Generator().manual_seed(int(seed)),
+    )
+    rb.extend(data)
+    rb.append_transform(PairToConditionTarget())
+    return rb
+
+
+def make_block_pair_buffer(
+    trajs: TensorDictBase,
+    block_ids: torch.Tensor,
+    *,
+    batch_size: int,
+    seed: int | None = None,
+    keys: Sequence[NestedKey] | None = ("observation", "action", "mask"),
+) -> TensorDictReplayBuffer:
+    """Replay buffer over ``trajs`` whose ``sample()`` is an adjacent-block pair batch (Eq. 5).
+
+    Args:
+        trajs: ``[N, H]`` trajectory batch.
+        block_ids: ``[N]`` block ids (:func:`make_blocks`).
+
+    Keyword Args:
+        batch_size: pairs per ``sample()``.
+        seed: seeds the buffer's generator (``None``: global RNG).
+        keys: entries kept in ``condition``/``target`` (``None``: all); e.g. add
+            ``("next", "reward")`` when the reward is diffused too.
+
+    Raises:
+        ValueError: malformed ``trajs``, ``block_ids`` of the wrong length, < 2 blocks.
+    """
+    validate_trajectories(trajs, name="make_block_pair_buffer: trajs")
+    block_ids = torch.as_tensor(block_ids)
+    if block_ids.shape != trajs.batch_size[:1]:
+        raise ValueError(
+            f"make_block_pair_buffer: block_ids has shape {list(block_ids.shape)}, expected [{trajs.batch_size[0]}]"
+        )
+    return _pair_buffer(trajs, BlockPairSampler(block_ids), batch_size=batch_size, seed=seed, keys=keys)
+
+
+def make_labeled_pair_buffer(
+    labels: TensorDictBase,
+    *,
+    batch_size: int,
+    seed: int | None = None,
+    keys: Sequence[NestedKey] | None = ("observation", "action", "mask"),
+) -> TensorDictReplayBuffer:
+    """Replay buffer of the labelled pairs only (naive Eq. 3): worse -> condition, better -> target.
+
+    Pairs with label 0.5 (ties) are skipped; label 1 keeps ``(tau0, tau1)``, label 0 swaps
+    them. Sampling is uniform with replacement; the batch format matches
+    :func:`make_block_pair_buffer` except ``"index"``, which is ``[B]`` here (the index of
+    the stored non-tie pair) and there is no ``"block"``.
+
+    Raises:
+        ValueError: missing keys, labels outside {0, 0.5, 1}, or no non-tie pair.
+    """
+    for key in ("tau0", "tau1", "label"):
+        if key not in labels.keys():
+            raise ValueError(f"make_labeled_pair_buffer: labels miss {key!r}")
+    label = labels.get("label")
+    if not bool(((label == 0) | (label == 0.5) | (label == 1)).all()):
+        raise ValueError("make_labeled_pair_buffer: 'label' must be in {0, 0.5, 1}")
+    decided = label != 0.5
+    if not bool(decided.any()):
+        raise ValueError("make_labeled_pair_buffer: all labels are ties; no pair to learn from")
+    tau0, tau1 = labels.get("tau0")[decided], labels.get("tau1")[decided]
+    swap = (label[decided] == 0)
+    worse = torch.where(_expand(swap, tau0), tau1, tau0)
+    better = torch.where(_expand(swap, tau0), tau0, tau1)
+    pairs = torch.stack([worse, better], 1)  # [M', 2, L]
+    return _pair_buffer(pairs, RandomSampler(), batch_size=batch_size, seed=seed, keys=keys)
+
+
+def _expand(flag: torch.Tensor, like: TensorDictBase) -> torch.Tensor:
+    return flag.reshape(-1, *([1] * (like.batch_dims - 1)))

@@ -1,0 +1,295 @@
+"""The trajectory score model ``s_psi`` of FTB (paper §3.2, App. B.2).
+
+``s(tau) = sum_h gamma^h * r_psi(s_h, a_h) * mask_h``: an MLP reward ``r_psi`` applied per
+step and summed over the valid steps of a padded trajectory batch ``[N, H]`` (+ ``"mask"``).
+This is the *one* score definition of the project (blocks, flow filter, reports all use it).
+``gamma`` (default 1.0) is stored in the model (a buffer, so it is saved in checkpoints).
+
+The per-step reward is exposed as :attr:`ScoreModel.reward_module`, a
+:class:`~tensordict.nn.TensorDictModule` ``(observation, action) -> ("next", "reward")`` for
+relabelling flat transitions (e.g. IQL + ``r_psi``). With ``num_members > 1`` the reward is an
+ensemble (:class:`~tensordict.nn.EnsembleModule`); the score and the reward are the ensemble
+means, and the members' scores and their standard deviation are output too.
+
+Example:
+    >>> from torchrl_ftb.preference import ScoreModel
+    >>> from torchrl_ftb.testing import make_toy_dataset
+    >>> trajs = make_toy_dataset(num_trajectories=4, horizon=8, seed=0)
+    >>> model = ScoreModel(3, 2, num_cells=16, seed=0)
+    >>> model(trajs)["score"].shape
+    torch.Size([4])
+"""
+from __future__ import annotations
+
+import copy
+from typing import Sequence
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import EnsembleModule, TensorDictModule, TensorDictModuleBase
+from tensordict.utils import NestedKey
+from torch import nn
+from torchrl.modules import MLP
+
+__all__ = ["ScoreModel", "score_trajectories"]
+
+
+def _prefixed(prefix: NestedKey | Sequence, key: NestedKey) -> NestedKey:
+    """``prefix`` + ``key`` as one nested key (a plain string when the prefix is empty)."""
+    prefix = (prefix,) if isinstance(prefix, str) else tuple(prefix)
+    key = (key,) if isinstance(key, str) else tuple(key)
+    full = (*prefix, *key)
+    return full[0] if len(full) == 1 else full
+
+
+def _suffixed(key: NestedKey, suffix: str) -> NestedKey:
+    return f"{key}{suffix}" if isinstance(key, str) else (*key[:-1], f"{key[-1]}{suffix}")
+
+
+class _StepReward(nn.Module):
+    """``(observation, action) -> r_psi`` per step; members ``[C, *B, 1]``, forward = member mean."""
+
+    def __init__(
+        self,
+        observation_dim: int,
+        action_dim: int,
+        *,
+        num_cells: int,
+        num_layers: int,
+        activation_class: type[nn.Module],
+        num_members: int,
+        device: torch.device | str | None,
+    ) -> None:
+        super().__init__()
+        mlp = MLP(
+            in_features=observation_dim + action_dim,
+            out_features=1,
+            num_cells=[num_cells] * (num_layers - 1),
+            activation_class=activation_class,
+            device=device,
+        )
+        # fixed internal keys: this td only lives inside _StepReward
+        member = TensorDictModule(mlp, in_keys=["observation", "action"], out_keys=["reward"])
+        self.num_members = num_members
+        self.net = EnsembleModule(member, num_copies=num_members) if num_members > 1 else member
+        self.observation_dim = observation_dim
+        self.action_dim = action_dim
+
+    def members(self, observation: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        if observation.shape[-1] != self.observation_dim or action.shape[-1] != self.action_dim:
+            raise ValueError(
+                f"ScoreModel: expected observation dim {self.observation_dim} and action dim "
+                f"{self.action_dim}, got {observation.shape[-1]} and {action.shape[-1]}"
+            )
+        dtype = next(self.parameters()).dtype  # e.g. float64 label files -> float32 weights
+        td = TensorDict(
+            {"observation": observation.to(dtype), "action": action.to(dtype)},
+            batch_size=observation.shape[:-1],
+        )
+        reward = self.net(td).get("reward")
+        return reward if self.num_members > 1 else reward.unsqueeze(0)
+
+    def forward(self, observation: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        return self.members(observation, action).mean(0)
+
+
+class ScoreModel(TensorDictModuleBase):
+    """Trajectory score ``s(tau) = sum_h gamma^h r_psi(s_h, a_h) mask_h`` as a TensorDict module.
+
+    Reads ``observation [*B, H, obs_dim]``, ``action [*B, H, act_dim]`` and ``mask [*B, H]``
+    (under an optional nested ``prefix``) and writes ``"score" [*B]`` (with an ensemble also
+    ``"score_members" [*B, C]`` and ``"score_std" [*B]``).
+
+    * On a trajectory batch ``[N, H]`` (``batch_size`` equal to ``mask.shape``) an ``[N]``
+      entry cannot be stored in the input, so :meth:`forward` returns a **new** ``[N]``
+      TensorDict holding the outputs.
+    * On a TensorDict whose batch is ``[*B]`` with the trajectories nested under ``prefix``
+      (e.g. labels ``[M]`` with ``"tau0"`` ``[M, L]``) the outputs are written in place.
+      Use :meth:`with_prefix` to get such a view sharing the parameters, or call
+      :meth:`score` on any sub-TensorDict.
+
+    Args:
+        observation_dim: size of ``observation``.
+        action_dim: size of ``action``.
+
+    Keyword Args:
+        num_cells: hidden width of the MLP (Table 4: 256).
+        num_layers: number of linear layers (Table 4: 3).
+        activation_class: hidden activation (Table 4: ReLU).
+        gamma: discount of the per-step rewards in the score (default 1.0).
+        num_members: ensemble size (1 = a single MLP).
+        prefix: nested key prefix under which the trajectories are read.
+        observation_key, action_key, mask_key: entry names (relative to ``prefix``).
+        score_key: output key for the score (at the root).
+        device: parameter device.
+        seed: seeds the parameter initialisation (the global RNG state is restored).
+
+    Example:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> model = ScoreModel(3, 2, num_cells=16, seed=0)
+        >>> obs, act = torch.randn(5, 7, 3), torch.randn(5, 7, 2)
+        >>> mask = torch.arange(7).expand(5, 7) < 4
+        >>> labels = TensorDict({"tau0": TensorDict(
+        ...     {"observation": obs, "action": act, "mask": mask}, [5, 7])}, [5])
+        >>> model.with_prefix("tau0", score_key="score0")(labels)["score0"].shape
+        torch.Size([5])
+    """
+
+    def __init__(
+        self,
+        observation_dim: int,
+        action_dim: int,
+        *,
+        num_cells: int = 256,
+        num_layers: int = 3,
+        activation_class: type[nn.Module] = nn.ReLU,
+        gamma: float = 1.0,
+        num_members: int = 1,
+        prefix: NestedKey | Sequence = (),
+        observation_key: NestedKey = "observation",
+        action_key: NestedKey = "action",
+        mask_key: NestedKey = "mask",
+        score_key: NestedKey = "score",
+        device: torch.device | str | None = None,
+        seed: int | None = None,
+    ) -> None:
+        super().__init__()
+        if num_layers < 1 or num_cells < 1 or num_members < 1:
+            raise ValueError(
+                f"ScoreModel: num_layers, num_cells and num_members must be >= 1, got "
+                f"{num_layers}, {num_cells}, {num_members}"
+            )
+        if not 0.0 < float(gamma) <= 1.0:
+            raise ValueError(f"ScoreModel: gamma must be in (0, 1], got {gamma}")
+        self.hparams = {
+            "observation_dim": int(observation_dim), "action_dim": int(action_dim),
+            "num_cells": int(num_cells), "num_layers": int(num_layers),
+            "num_members": int(num_members), "gamma": float(gamma),
+        }
+        with torch.random.fork_rng(devices=[]):
+            if seed is not None:
+                torch.manual_seed(seed)
+            step = _StepReward(
+                observation_dim, action_dim, num_cells=num_cells, num_layers=num_layers,
+                activation_class=activation_class, num_members=num_members, device=device,
+            )
+        self.reward_module = TensorDictModule(
+            step, in_keys=[observation_key, action_key], out_keys=[("next", "reward")]
+        )
+        self.register_buffer("gamma", torch.tensor(float(gamma), device=device))
+        self._set_keys(prefix, observation_key, action_key, mask_key, score_key)
+
+    # -- keys ---------------------------------------------------------------------------
+    def _set_keys(self, prefix, observation_key, action_key, mask_key, score_key) -> None:
+        prefix = (prefix,) if isinstance(prefix, str) else tuple(prefix)
+        self.prefix = prefix
+        self._rel_keys = (observation_key, action_key, mask_key)
+        self.score_key = score_key
+        self.in_keys = [_prefixed(prefix, k) for k in self._rel_keys]
+        outs = [score_key]
+        if self.num_members > 1:
+            outs += [_suffixed(score_key, "_members"), _suffixed(score_key, "_std")]
+        self.out_keys = outs
+
+    def with_prefix(self, prefix: NestedKey | Sequence, *, score_key: NestedKey = "score") -> "ScoreModel":
+        """A view of this model reading trajectories under ``prefix``; shares all parameters.
+
+        Example:
+            >>> m = ScoreModel(3, 2, num_cells=8).with_prefix("tau1", score_key="score1")
+            >>> m.in_keys[0]
+            ('tau1', 'observation')
+        """
+        view = copy.copy(self)  # shallow: shares _modules/_parameters/_buffers with self
+        view._set_keys(prefix, *self._rel_keys, score_key)
+        return view
+
+    @property
+    def num_members(self) -> int:
+        return self.reward_module.module.num_members
+
+    # -- maths --------------------------------------------------------------------------
+    def step_rewards(self, trajs: TensorDictBase) -> torch.Tensor:
+        """Per-step rewards of every member, ``[C, *B, H]`` (padded steps included, not masked)."""
+        obs_key, act_key, _ = self._rel_keys
+        return self.reward_module.module.members(trajs.get(obs_key), trajs.get(act_key)).squeeze(-1)
+
+    def discounts(self, horizon: int) -> torch.Tensor:
+        """``gamma^h`` for ``h = 0..horizon-1``."""
+        return self.gamma ** torch.arange(horizon, device=self.gamma.device, dtype=self.gamma.dtype)
+
+    def score(self, trajs: TensorDictBase, *, members: bool = False) -> torch.Tensor:
+        """Score of a trajectory (sub-)TensorDict: ``[*B]`` (ensemble mean) or ``[C, *B]``.
+
+        Padded steps (``mask`` False) contribute exactly zero, whatever their content.
+        """
+        obs_key, act_key, mask_key = self._rel_keys
+        mask = trajs.get(mask_key)
+        if mask.dtype != torch.bool:
+            raise ValueError(f"ScoreModel: {mask_key!r} must be bool, got {mask.dtype}")
+        # r_psi is evaluated on the valid steps only (padding is never computed, so it
+        # cannot leak in, and long-horizon padded data cost only their valid steps)
+        where = mask.nonzero(as_tuple=True)
+        rewards = self.reward_module.module.members(trajs.get(obs_key)[where], trajs.get(act_key)[where])
+        discounted = rewards.squeeze(-1) * self.discounts(mask.shape[-1]).to(rewards.dtype)[where[-1]]
+        batch = mask.shape[:-1]
+        traj = torch.arange(batch.numel(), device=mask.device).reshape(batch)[where[:-1]]
+        per_member = rewards.new_zeros(rewards.shape[0], batch.numel()).index_add(1, traj, discounted)
+        per_member = per_member.reshape(rewards.shape[0], *batch)
+        return per_member if members else per_member.mean(0)
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        trajs = tensordict.get(self.prefix) if self.prefix else tensordict
+        per_member = self.score(trajs, members=True)
+        outputs = {self.out_keys[0]: per_member.mean(0)}
+        if self.num_members > 1:
+            outputs[self.out_keys[1]] = per_member.movedim(0, -1)
+            outputs[self.out_keys[2]] = per_member.std(0)
+        batch = per_member.shape[1:]
+        if tensordict.batch_dims > len(batch):  # a trajectory batch [N, H]: new [N] output
+            return TensorDict(outputs, batch_size=batch, device=tensordict.device)
+        for key, value in outputs.items():
+            tensordict.set(key, value)
+        return tensordict
+
+
+@torch.no_grad()
+def score_trajectories(
+    model: ScoreModel,
+    trajs: TensorDictBase,
+    *,
+    batch_size: int = 1024,
+    members: bool = False,
+) -> torch.Tensor:
+    """Score an ``[N, H]`` trajectory batch without gradients, in chunks of ``batch_size``.
+
+    The chunks are moved to the model's device; the result is on the device of ``trajs``.
+
+    Returns:
+        ``[N]`` scores (ensemble mean), or ``[C, N]`` with ``members=True``.
+
+    Example:
+        >>> from torchrl_ftb.testing import make_toy_dataset
+        >>> trajs = make_toy_dataset(num_trajectories=10, horizon=8)
+        >>> score_trajectories(ScoreModel(3, 2, num_cells=8), trajs, batch_size=4).shape
+        torch.Size([10])
+    """
+    if trajs.batch_dims != 2:
+        raise ValueError(f"score_trajectories: expected an [N, H] batch, got {list(trajs.batch_size)}")
+    if batch_size < 1:
+        raise ValueError(f"score_trajectories: batch_size must be >= 1, got {batch_size}")
+    device = model.gamma.device
+    was_training = model.training
+    model.eval()
+    try:
+        chunks = [
+            model.score(trajs[i : i + batch_size].to(device), members=True)
+            for i in range(0, trajs.batch_size[0], batch_size)
+        ]
+    finally:
+        model.train(was_training)
+    out = torch.cat(chunks, -1) if chunks else torch.zeros(model.num_members, 0, device=device)
+    out = out if members else out.mean(0)
+    if not bool(torch.isfinite(out).all()):
+        raise FloatingPointError("score_trajectories: the score model produced NaN/inf scores")
+    return out.to(trajs.get("mask").device)
