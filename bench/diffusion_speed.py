@@ -1,0 +1,140 @@
+"""Benchmark: trajectory-diffuser training throughput and sampling cost on this machine.
+
+Measures, for the ``cpu`` and ``paper`` presets (paper: a few steps only), fp32 vs bf16
+autocast:
+* training: seconds per optimisation step and trajectories/s (batch of pairs, horizon H);
+* sampling: ms per generated trajectory and denoiser calls per trajectory (CFG batched).
+
+Writes JSON to ``bench/results/diffusion_speed_<tag>.json`` with the command, config, git
+commit, machine info and results. Not a test.
+
+Usage::
+
+    nice -n 10 python bench/diffusion_speed.py --horizon 500 --obs-dim 39 --action-dim 4 \
+        --presets cpu paper --train-steps 5 --paper-train-steps 2 --sample-batch 16
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import torch
+from tensordict import TensorDict
+
+from torchrl_ftb.data.trajectories import atomic_write_text
+from torchrl_ftb.diffusion import DiffusionSampler, get_preset, make_diffuser, train_diffuser
+
+
+def _commit() -> str | None:
+    try:
+        return subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=True).stdout.strip()
+    except Exception:  # noqa: BLE001 - commit is optional metadata
+        return None
+
+
+def _machine() -> dict:
+    info = {"platform": platform.platform(), "python": sys.version.split()[0], "torch": torch.__version__,
+            "cpu_count": os.cpu_count(), "threads": torch.get_num_threads(),
+            "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None}
+    try:
+        info["cpu"] = next(l.split(":", 1)[1].strip() for l in open("/proc/cpuinfo") if l.startswith("model name"))
+        info["loadavg_at_start"] = os.getloadavg()
+    except Exception:  # noqa: BLE001
+        pass
+    return info
+
+
+def _random_trajectories(n: int, horizon: int, obs_dim: int, action_dim: int, seed: int) -> TensorDict:
+    g = torch.Generator().manual_seed(seed)
+    lengths = torch.randint(horizon // 2, horizon + 1, (n,), generator=g)
+    mask = torch.arange(horizon) < lengths[:, None]
+    m = mask[..., None].float()
+    return TensorDict({"observation": torch.randn(n, horizon, obs_dim, generator=g) * m,
+                       "action": torch.rand(n, horizon, action_dim, generator=g).mul(2).sub(1) * m,
+                       "mask": mask}, batch_size=[n, horizon])
+
+
+def bench_preset(preset: str, args, *, bf16: bool, train_steps: int) -> dict:
+    torch.manual_seed(0)
+    device = torch.device(args.device)
+    data = _random_trajectories(64, args.horizon, args.obs_dim, args.action_dim, 0)
+    diffuser = make_diffuser(preset, obs_dim=args.obs_dim, action_dim=args.action_dim, horizon=args.horizon,
+                             **json.loads(args.overrides)).fit_normalizer(data).to(device)
+    batch_size = args.batch_size or get_preset(preset)["train"]["batch_size"]
+    g = torch.Generator().manual_seed(1)
+
+    def sample():
+        i, j = torch.randint(0, 64, (batch_size,), generator=g), torch.randint(0, 64, (batch_size,), generator=g)
+        return TensorDict({"condition": data[i], "target": data[j]}, batch_size=[batch_size])
+
+    n_params = sum(p.numel() for p in diffuser.trainable_parameters())
+    train_diffuser(diffuser, sample, steps=1, progress=False, device=device, autocast_bf16=bf16)  # warm-up
+    t0 = time.perf_counter()
+    out = train_diffuser(diffuser, sample, steps=train_steps, progress=False, device=device, autocast_bf16=bf16)
+    wall = time.perf_counter() - t0
+    result = {"preset": preset, "overrides": json.loads(args.overrides), "bf16": bf16, "parameters": n_params, "batch_size": batch_size,
+              "train_steps_timed": train_steps, "s_per_train_step": wall / max(train_steps, 1),
+              "train_trajectories_per_s": batch_size * train_steps / wall, "final_loss": out["final_loss"]}
+    calls = []
+    hook = diffuser.ema.module["backbone"].register_forward_hook(lambda m, a, o: calls.append(a[0].shape[0]))
+    cond = TensorDict({"condition": data[: args.sample_batch]}, batch_size=[args.sample_batch])
+    samplers = [("ddpm", 50), ("dpm++", 20)] + ([("ddpm", args.ddpm_steps)] if args.ddpm_steps else [])
+    result["sampling"] = []
+    for name, steps in samplers:
+        calls.clear()
+        module = DiffusionSampler(diffuser, sampler=name, steps=steps, seed=0, autocast_bf16=bf16)
+        t0 = time.perf_counter()
+        module(cond.clone())
+        wall = time.perf_counter() - t0
+        result["sampling"].append({"sampler": name, "steps": steps, "batch": args.sample_batch,
+                                   "ms_per_trajectory": 1000 * wall / args.sample_batch,
+                                   "denoiser_calls": len(calls),
+                                   "denoiser_calls_per_trajectory": len(calls) / args.sample_batch,
+                                   "denoiser_batch": calls[0] if calls else None})
+    hook.remove()
+    return result
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--presets", nargs="+", default=["cpu", "paper"])
+    parser.add_argument("--horizon", type=int, default=500)
+    parser.add_argument("--obs-dim", type=int, default=39)
+    parser.add_argument("--action-dim", type=int, default=4)
+    parser.add_argument("--batch-size", type=int, default=None, help="default: the preset's")
+    parser.add_argument("--train-steps", type=int, default=5)
+    parser.add_argument("--paper-train-steps", type=int, default=2)
+    parser.add_argument("--sample-batch", type=int, default=16)
+    parser.add_argument("--ddpm-steps", type=int, default=0, help="also time DDPM with this many steps (0: skip)")
+    parser.add_argument("--no-bf16", action="store_true")
+    parser.add_argument("--threads", type=int, default=None)
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--overrides", default="{}", help='model overrides as JSON, e.g. \'{"attention_factors": [1, 2, 4, 8]}\'')
+    parser.add_argument("--tag", default=None)
+    args = parser.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    results = []
+    for preset in args.presets:
+        for bf16 in ([False] if args.no_bf16 else [False, True]):
+            steps = args.paper_train_steps if preset == "paper" else args.train_steps
+            res = bench_preset(preset, args, bf16=bf16, train_steps=steps)
+            print(json.dumps(res), flush=True)
+            results.append(res)
+    tag = args.tag or f"H{args.horizon}_{args.device}"
+    payload = {"benchmark": "diffusion_speed", "command": " ".join(sys.argv), "config": vars(args),
+               "git_commit": _commit(), "machine": _machine(), "results": results,
+               "created": time.strftime("%Y-%m-%dT%H:%M:%S")}
+    path = Path(__file__).resolve().parent / "results" / f"diffusion_speed_{tag}.json"
+    atomic_write_text(path, json.dumps(payload, indent=2))
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()

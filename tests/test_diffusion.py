@@ -1,0 +1,232 @@
+"""Unit tests of the trajectory diffuser pieces (fast: tiny nets, no real training)."""
+from __future__ import annotations
+
+import pytest
+import torch
+from tensordict import TensorDict
+
+from torchrl_ftb.diffusion import (
+    DiffusionLoss,
+    DiffusionProcess,
+    DiffusionSampler,
+    TemporalUnet,
+    TrajectoryDiffuser,
+    TrajectoryNormalizer,
+    load_diffuser,
+    make_diffuser,
+    save_diffuser,
+    train_diffuser,
+)
+from torchrl_ftb.testing import make_toy_dataset
+
+H = 12
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    """Tiny nets: one intra-op thread is faster than two on a shared 2-core machine."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def data():
+    return make_toy_dataset(num_trajectories=32, horizon=H, seed=0)
+
+
+def _diffuser(data, **kw):
+    torch.manual_seed(0)
+    return make_diffuser("tiny", obs_dim=3, action_dim=2, horizon=H, **kw).fit_normalizer(data)
+
+
+def _pairs(data, idx0, idx1):
+    return TensorDict({"condition": data[idx0], "target": data[idx1]}, batch_size=[len(idx0)])
+
+
+def test_unet_odd_horizon_and_bad_attention_factor():
+    net = TemporalUnet(4, hidden_dim=8, dim_mults=(1, 2, 4), cond_dim=8, num_heads=2, attention_factors=(1, 4))
+    out = net(torch.randn(2, 13, 4), torch.tensor([1, 999]), torch.randn(2, 5, 8), torch.ones(2, 5, dtype=torch.bool))
+    assert out.shape == (2, 13, 4) and torch.isfinite(out).all()
+    with pytest.raises(ValueError, match="attention_factors"):
+        TemporalUnet(4, hidden_dim=8, dim_mults=(1, 2), cond_dim=8, attention_factors=(4,))
+
+
+def test_cross_attention_ignores_padded_condition_steps():
+    torch.manual_seed(0)
+    net = TemporalUnet(4, hidden_dim=8, dim_mults=(1, 2), cond_dim=8, num_heads=2).eval()
+    x, t = torch.randn(2, 8, 4), torch.tensor([10, 500])
+    cond, mask = torch.randn(2, 6, 8), torch.tensor([[True] * 4 + [False] * 2] * 2)
+    cond2 = cond.clone()
+    cond2[:, 4:] = 100.0
+    assert torch.allclose(net(x, t, cond, mask), net(x, t, cond2, mask), atol=1e-5)
+    assert not torch.allclose(net(x, t, cond, mask), net(x, t, cond2, None), atol=1e-3)
+
+
+def test_normalizer_uses_valid_steps_only():
+    x = torch.randn(4, 6, 3)
+    mask = torch.arange(6) < torch.tensor([6, 3, 2, 5])[:, None]
+    a = TrajectoryNormalizer(3).fit(x, mask)
+    x2 = x.clone()
+    x2[~mask] = 1e3
+    b = TrajectoryNormalizer(3).fit(x2, mask)
+    assert torch.allclose(a.mean, b.mean) and torch.allclose(a.std, b.std)
+    assert torch.allclose(a.mean, x[mask].mean(0), atol=1e-6)
+    assert "mean" in a.state_dict() and "std" in a.state_dict()
+
+
+def test_loss_ignores_padding_but_not_valid_steps(data):
+    d = _diffuser(data)
+    d.eval()  # no dropout: the loss is a deterministic function of the RNG stream
+    loss = DiffusionLoss(d)
+    batch = _pairs(data, torch.arange(4), torch.arange(4, 8))
+    for sub, lengths in (("condition", [3, 12, 7, 5]), ("target", [9, 4, 12, 6])):
+        mask = torch.arange(H) < torch.tensor(lengths)[:, None]
+        batch.set((sub, "mask"), mask)
+        for k in ("observation", "action"):
+            batch[sub, k][~mask] = 0.0
+
+    def value(b):
+        torch.manual_seed(123)
+        return loss(b)["loss_diffusion"].item()
+
+    base = value(batch)
+    changed = batch.clone()
+    for sub in ("condition", "target"):
+        m = changed[sub, "mask"]
+        for k in ("observation", "action"):
+            v = changed[sub, k]
+            v[~m] = 50.0
+    assert value(changed) == pytest.approx(base, abs=1e-6)
+    changed["target", "action"][:, 0] += 1.0  # a valid step: must matter
+    assert abs(value(changed) - base) > 1e-4
+
+
+def test_loss_keys_and_errors(data):
+    d = _diffuser(data)
+    loss = DiffusionLoss(d)
+    batch = _pairs(data, torch.arange(4), torch.arange(4, 8))
+    out = loss(batch)
+    assert set(out.keys()) >= {"loss_diffusion", "diffusion_mse_data", "diffusion_mse_validity"}
+    loss.set_keys(target="better")
+    renamed = TensorDict({"condition": batch["condition"], "better": batch["target"]}, batch_size=[4])
+    assert torch.isfinite(loss(renamed)["loss_diffusion"])
+    with pytest.raises(ValueError, match="'better'"):
+        loss(batch)
+    bad = _pairs(data, torch.arange(4), torch.arange(4, 8))
+    bad.set(("target", "observation"), torch.zeros(4, H, 5))
+    with pytest.raises(ValueError, match="observation"):
+        DiffusionLoss(d)(bad)
+    unfit = make_diffuser("tiny", obs_dim=3, action_dim=2, horizon=H)
+    with pytest.raises(ValueError, match="fit_normalizer"):
+        DiffusionLoss(unfit)(batch)
+
+
+def test_ddpm_noise_std_is_correct():
+    """Exact eps of N(0, 0.25) data: ancestral sampling must reproduce std 0.5 (variance-scaled noise does not)."""
+    process = DiffusionProcess()
+    s2 = 0.25
+    abar = process.scheduler.alphas_cumprod
+
+    def eps(x, t):
+        a = abar[t].view(-1, 1, 1)
+        return (1 - a).sqrt() * x / (a * s2 + 1 - a)
+
+    for sampler, steps in (("ddpm", 200), ("ddim", 50), ("dpm++", 20)):
+        x = process.sample(eps, (4000, 1, 1), sampler=sampler, steps=steps, generator=torch.Generator().manual_seed(0))
+        assert abs(x.std().item() - 0.5) < 0.03, (sampler, x.std().item())
+
+
+@pytest.mark.parametrize("sampler", ["ddim", "dpm++", "ddpm"])
+def test_sampler_denoiser_calls_and_batched_guidance(data, sampler):
+    d = _diffuser(data)
+    calls = []
+    handle = d.backbone.register_forward_hook(lambda m, args, out: calls.append(args[0].shape[0]))
+    try:
+        d.generate(data[:3], sampler=sampler, steps=7, guidance=1.2, use_ema=False)
+    finally:
+        handle.remove()
+    assert len(calls) == 7 <= 2 * 7
+    assert set(calls) == {6}  # conditional + unconditional in ONE batched forward
+
+
+def test_guided_eps_matches_separate_passes(data):
+    d = _diffuser(data).eval()
+    cond = d.condition_input(d.raw_data_from_td(data[:2]), data[:2]["mask"])
+    emb, mask = d.encode_condition(cond, data[:2]["mask"])
+    x, t = torch.randn(2, H, d.transition_dim), torch.tensor([5, 700])
+    null_emb, null_mask = d.encoder.null(2, H)
+    eps_c = d.backbone(x, t, emb, mask)
+    eps_u = d.backbone(x, t, null_emb, null_mask)
+    got = d.guided_eps(x, t, emb, mask, guidance=1.2)
+    assert torch.allclose(got, eps_u + 1.2 * (eps_c - eps_u), atol=1e-5)
+
+
+def test_detect_mask_prefix():
+    v = torch.tensor([[1.0, 1.0, -0.1, 1.0, -1.0, -1.0], [-1.0, -1.0, -1.0, -1.0, -1.0, -1.0]])
+    mask = TrajectoryDiffuser.detect_mask(v)
+    assert mask.sum(-1).tolist() == [4, 1]
+
+
+def test_generate_unconditional_with_reward(data):
+    d = _diffuser(data, unconditional=True, reward_channel=True)
+    d.update_ema()
+    out = DiffusionSampler(d, sampler="ddim", steps=3, seed=0, num_samples=5)(TensorDict({}, batch_size=[]))
+    s = out["sample"]
+    assert s.batch_size == (5, H) and s["next", "reward"].shape == (5, H, 1)
+    assert (s["observation"][~s["mask"]] == 0).all()
+    with pytest.raises(ValueError, match="reward"):
+        _diffuser(data, reward_channel=True).fit_normalizer(data.exclude(("next", "reward")))
+
+
+def test_save_load_identical_samples_and_errors(data, tmp_path):
+    d = _diffuser(data)
+    batch = _pairs(data, torch.arange(8), torch.arange(8, 16))
+    train_diffuser(d, lambda: batch, steps=3, lr=1e-2, progress=False)
+    path = save_diffuser(d, tmp_path / "d.pt")
+    d2 = load_diffuser(path)
+    module = dict(sampler="dpm++", steps=4, seed=7)
+    a = DiffusionSampler(d, **module)(TensorDict({"condition": data[:4]}, batch_size=[4]))["sample"]
+    b = DiffusionSampler(d2, **module)(TensorDict({"condition": data[:4]}, batch_size=[4]))["sample"]
+    assert torch.equal(a["observation"], b["observation"]) and torch.equal(a["mask"], b["mask"])
+    c = DiffusionSampler(d2, **module)(TensorDict({"condition": data[:4]}, batch_size=[4]))["sample"]
+    assert torch.equal(b["action"], c["action"])  # seed: reproducible across calls
+    with pytest.raises(FileNotFoundError):
+        load_diffuser(tmp_path / "missing.pt")
+    (tmp_path / "bad.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(ValueError, match="bad.pt"):
+        load_diffuser(tmp_path / "bad.pt")
+    other = make_diffuser("tiny", obs_dim=3, action_dim=2, horizon=H, hidden_dim=8)
+    with pytest.raises(ValueError, match="does not match"):
+        load_diffuser(path, diffuser=other)
+
+
+def test_resume_continues_exactly(data, tmp_path):
+    def sampler():  # draws from torch's global RNG, like torchrl's RandomSampler
+        i = torch.randint(0, 32, (8,))
+        return _pairs(data, i, torch.randint(0, 32, (8,)))
+
+    a = _diffuser(data)
+    train_diffuser(a, sampler, steps=4, lr=1e-3, progress=False, seed=3)
+    b = _diffuser(data)
+    train_diffuser(b, sampler, steps=2, lr=1e-3, progress=False, seed=3, checkpoint_dir=tmp_path)
+    b2 = _diffuser(data)
+    out = train_diffuser(b2, sampler, steps=4, lr=1e-3, progress=False, seed=99, checkpoint_dir=tmp_path, resume=True)
+    assert out["resumed_from"] == 2 and out["step"] == 4
+    sa, sb = a.state_dict(), b2.state_dict()
+    assert all(torch.allclose(sa[k].float(), sb[k].float(), atol=1e-6) for k in sa)
+    loaded = load_diffuser(tmp_path / "diffuser_last.pt")
+    assert torch.equal(loaded.state_dict()["ema.n_averaged"], sb["ema.n_averaged"])
+
+
+def test_trains_on_preference_block_pair_buffer(data):
+    """The loss consumes the preference stage's replay buffer batches as they are."""
+    from torchrl_ftb.preference import make_block_pair_buffer
+
+    d = _diffuser(data)
+    rb = make_block_pair_buffer(data, torch.arange(32) // 8, batch_size=6, seed=0)
+    out = train_diffuser(d, rb, steps=2, lr=1e-3, progress=False, autocast_bf16=True)
+    assert out["step"] == 2 and all(torch.isfinite(torch.tensor(out["losses"])))
+    sample = d.generate(data[:2], sampler="ddim", steps=2, autocast_bf16=True)
+    assert torch.isfinite(sample["observation"]).all()

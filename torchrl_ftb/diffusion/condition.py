@@ -1,0 +1,73 @@
+"""Condition-trajectory encoder ``e_theta`` (FTB §3.1) with a learned null condition for CFG.
+
+A 1-D convolutional network maps a normalised condition trajectory ``[B, Hc, D]`` to an
+embedding ``zeta [B, Hc, d_tau]`` (two Conv1d + GroupNorm + Mish blocks, as in the authors'
+code). Padded condition steps are zeroed at the input and excluded from attention through
+the returned key-padding mask (``True`` = valid). The *null* condition used for
+classifier-free guidance is one learned token: ``[B, 1, d_tau]`` with mask ``[B, 1]`` True.
+
+Example:
+    >>> import torch
+    >>> enc = TrajectoryEncoder(5, embed_dim=16)
+    >>> emb, mask = enc(torch.randn(2, 9, 5), torch.ones(2, 9, dtype=torch.bool))
+    >>> emb.shape, mask.shape
+    (torch.Size([2, 9, 16]), torch.Size([2, 9]))
+    >>> enc.null(2, 9)[0].shape
+    torch.Size([2, 9, 16])
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+
+__all__ = ["TrajectoryEncoder"]
+
+
+class TrajectoryEncoder(nn.Module):
+    """Conv1d trajectory encoder ``transition_dim -> embed_dim`` + learned null token.
+
+    Args:
+        transition_dim: per-step size of the (normalised) condition.
+        embed_dim: output size ``d_tau``.
+        kernel_size: temporal kernel of both convolutions.
+    """
+
+    def __init__(self, transition_dim: int, *, embed_dim: int = 128, kernel_size: int = 5) -> None:
+        super().__init__()
+        self.transition_dim = int(transition_dim)
+        self.embed_dim = int(embed_dim)
+        groups = math.gcd(8, self.embed_dim)
+        self.net = nn.Sequential(
+            nn.Conv1d(transition_dim, embed_dim, kernel_size, padding=kernel_size // 2),
+            nn.GroupNorm(groups, embed_dim),
+            nn.Mish(),
+            nn.Conv1d(embed_dim, embed_dim, kernel_size, padding=kernel_size // 2),
+            nn.GroupNorm(groups, embed_dim),
+            nn.Mish(),
+        )
+        self.null_embedding = nn.Parameter(torch.randn(embed_dim) * 0.02)
+
+    def forward(self, x: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Encode ``x [B, Hc, D]`` (padded steps are zeroed here); returns ``(emb, mask)``."""
+        if x.ndim != 3 or x.shape[-1] != self.transition_dim:
+            raise ValueError(f"TrajectoryEncoder: condition must be [B, Hc, {self.transition_dim}], got {list(x.shape)}")
+        mask = mask.bool()
+        x = x * mask[..., None].to(x.dtype)
+        return self.net(x.transpose(1, 2)).transpose(1, 2), mask
+
+    def null(self, batch: int, length: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """The null condition shaped like an encoded one: token at step 0, the rest masked out."""
+        emb = torch.zeros(batch, length, self.embed_dim, device=self.null_embedding.device,
+                          dtype=self.null_embedding.dtype)
+        emb[:, 0] = self.null_embedding
+        mask = torch.zeros(batch, length, dtype=torch.bool, device=emb.device)
+        mask[:, 0] = True
+        return emb, mask
+
+    def drop(self, emb: torch.Tensor, mask: torch.Tensor, drop: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Replace the conditions where ``drop [B]`` is True by the null condition (CFG training)."""
+        null_emb, null_mask = self.null(emb.shape[0], emb.shape[1])
+        return (torch.where(drop[:, None, None], null_emb.to(emb.dtype), emb),
+                torch.where(drop[:, None], null_mask, mask))

@@ -1,0 +1,333 @@
+"""``TrajectoryDiffuser``: wiring of backbone, condition encoder, process, normaliser and EMA.
+
+The diffused vector per step is ``[observation, action]`` (``+ [reward]`` with
+``reward_channel=True``, FTB as data augmentation §4.4), z-scored per dimension, plus one
+**validity channel**: ``+1`` on valid steps, ``-1`` on padded ones. The generated length is
+the prefix that best agrees with the sign of that channel (:meth:`detect_mask`, at least one step). We chose a learned channel
+over the authors' ``|obs|+|act| < 1`` heuristic (which breaks for any task whose raw values
+are small): its loss is computed on *every* step while the state/action (reward) loss is
+masked to valid steps, and padded target steps are set to 0 (in z-score space) before
+noising so their raw values never reach the model.
+
+The denoising networks (``backbone`` + ``encoder``, which holds the learned null condition)
+live in ``networks``; ``ema`` is a :class:`torch.optim.swa_utils.AveragedModel` copy of them
+(updated by :meth:`update_ema`, used by :meth:`generate` by default). The normaliser's
+buffers are shared by both.
+
+Example:
+    >>> import torch
+    >>> from torchrl_ftb.diffusion import make_diffuser
+    >>> from torchrl_ftb.testing import make_toy_dataset
+    >>> data = make_toy_dataset(num_trajectories=8, horizon=8, seed=0)
+    >>> diffuser = make_diffuser("tiny", obs_dim=3, action_dim=2, horizon=8).fit_normalizer(data)
+    >>> out = diffuser.generate(data[:2], sampler="ddim", steps=2, use_ema=False)
+    >>> out["observation"].shape, out["mask"].dtype
+    (torch.Size([2, 8, 3]), torch.bool)
+    >>> TrajectoryDiffuser.detect_mask(torch.tensor([[1.0, 0.9, -0.2, 0.8, -1.0, -0.9]])).sum().item()
+    4
+"""
+from __future__ import annotations
+
+import contextlib
+import warnings
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torch import nn
+from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
+
+from torchrl_ftb.diffusion.backbones.base import DenoiserBackbone
+from torchrl_ftb.diffusion.condition import TrajectoryEncoder
+from torchrl_ftb.diffusion.normalizer import TrajectoryNormalizer
+from torchrl_ftb.diffusion.process import DiffusionProcess
+
+__all__ = ["TrajectoryDiffuser", "REWARD_KEY"]
+
+REWARD_KEY = ("next", "reward")
+
+
+class TrajectoryDiffuser(nn.Module):
+    """Classifier-free conditional trajectory diffuser (FTB §3.1, Fig. 2).
+
+    Args:
+        backbone: denoiser, ``transition_dim = obs_dim + action_dim (+1 reward) + 1 validity``.
+        encoder: condition encoder over ``obs_dim + action_dim (+1)`` (``None`` iff unconditional).
+        process: the diffusion process (schedule + samplers).
+        normalizer: z-score over ``obs_dim + action_dim (+1)``.
+
+    Keyword Args:
+        obs_dim: observation size.
+        action_dim: action size.
+        reward_channel: also diffuse the reward (``("next", "reward")``).
+        unconditional: no condition at all (SYNTHETIC-style baseline).
+        cond_drop_prob: probability of replacing the condition by the null one in training (CFG).
+        ema_decay: decay of the EMA of the networks.
+        horizon: default horizon of generated trajectories (used when no condition is given).
+        clip_margin: at sampling, the predicted ``x_0`` is clamped to the data's range (z-space)
+            widened by this fraction of its width on each side (validity channel to [-1, 1]);
+            ``None`` disables clipping (see :mod:`torchrl_ftb.diffusion.process`).
+    """
+
+    def __init__(
+        self,
+        backbone: DenoiserBackbone,
+        encoder: TrajectoryEncoder | None,
+        process: DiffusionProcess,
+        normalizer: TrajectoryNormalizer,
+        *,
+        obs_dim: int,
+        action_dim: int,
+        reward_channel: bool = False,
+        unconditional: bool = False,
+        cond_drop_prob: float = 0.25,
+        ema_decay: float = 0.995,
+        horizon: int | None = None,
+        clip_margin: float | None = 0.5,
+    ) -> None:
+        super().__init__()
+        self.clip_margin = clip_margin
+        self.obs_dim, self.action_dim = int(obs_dim), int(action_dim)
+        self.reward_channel = bool(reward_channel)
+        self.unconditional = bool(unconditional)
+        if not 0.0 <= cond_drop_prob < 1.0:
+            raise ValueError(f"cond_drop_prob must be in [0, 1), got {cond_drop_prob}")
+        self.cond_drop_prob = float(cond_drop_prob)
+        self.horizon = horizon
+        self.process = process
+        if backbone.transition_dim != self.transition_dim:
+            raise ValueError(f"backbone.transition_dim={backbone.transition_dim} but the diffuser needs "
+                             f"{self.transition_dim} (obs {obs_dim} + action {action_dim}"
+                             f"{' + reward 1' if reward_channel else ''} + validity 1)")
+        if normalizer.dim != self.data_dim:
+            raise ValueError(f"normalizer.dim={normalizer.dim} but the data have {self.data_dim} dims")
+        if unconditional != (encoder is None):
+            raise ValueError("pass encoder=None exactly when unconditional=True")
+        if encoder is not None and encoder.transition_dim != self.data_dim:
+            raise ValueError(f"encoder.transition_dim={encoder.transition_dim} but conditions have {self.data_dim} dims")
+        if encoder is not None and backbone.cond_dim != encoder.embed_dim:
+            raise ValueError(f"backbone.cond_dim={backbone.cond_dim} != encoder.embed_dim={encoder.embed_dim}")
+        self.normalizer = normalizer
+        nets = {"backbone": backbone} if encoder is None else {"backbone": backbone, "encoder": encoder}
+        self.networks = nn.ModuleDict(nets)
+        self.ema = AveragedModel(self.networks, multi_avg_fn=get_ema_multi_avg_fn(ema_decay), use_buffers=False)
+        self.ema.requires_grad_(False)
+        self.ema_decay = float(ema_decay)
+        #: constructor config (set by :func:`~torchrl_ftb.diffusion.make_diffuser`), for save/load
+        self.config: dict | None = None
+
+    # ------------------------------------------------------------------ layout
+    @property
+    def data_dim(self) -> int:
+        """Size of ``[obs, action (, reward)]``."""
+        return self.obs_dim + self.action_dim + int(self.reward_channel)
+
+    @property
+    def transition_dim(self) -> int:
+        """Size of the diffused vector (data + validity channel)."""
+        return self.data_dim + 1
+
+    @property
+    def backbone(self) -> DenoiserBackbone:
+        return self.networks["backbone"]
+
+    @property
+    def encoder(self) -> TrajectoryEncoder | None:
+        return self.networks["encoder"] if "encoder" in self.networks else None
+
+    def trainable_parameters(self):
+        """Parameters the optimiser updates (the EMA copy is excluded)."""
+        return self.networks.parameters()
+
+    # ------------------------------------------------------------------ data <-> model space
+    def raw_data(self, observation: torch.Tensor, action: torch.Tensor,
+                 reward: torch.Tensor | None = None, *, name: str = "batch") -> torch.Tensor:
+        """Concatenate ``[obs, action (, reward)]`` (raw units), checking sizes."""
+        if observation.shape[-1] != self.obs_dim:
+            raise ValueError(f"{name}: 'observation' has size {observation.shape[-1]}, expected {self.obs_dim}")
+        if action.shape[-1] != self.action_dim:
+            raise ValueError(f"{name}: 'action' has size {action.shape[-1]}, expected {self.action_dim}")
+        parts = [observation, action]
+        if self.reward_channel:
+            if reward is None:
+                raise ValueError(f"{name}: missing ('next', 'reward'), required with reward_channel=True")
+            parts.append(reward.reshape(*observation.shape[:-1], 1))
+        return torch.cat([p.float() for p in parts], -1)
+
+    def raw_data_from_td(self, td: TensorDictBase, *, name: str = "batch") -> torch.Tensor:
+        """``[obs, action (, reward)]`` of a trajectory batch (conventions' key names)."""
+        reward = td.get(REWARD_KEY, None) if self.reward_channel else None
+        return self.raw_data(td.get("observation"), td.get("action"), reward, name=name)
+
+    def fit_normalizer(self, trajectories: TensorDictBase) -> "TrajectoryDiffuser":
+        """Fit the z-score on the valid steps of a trajectory batch ``[N, H]`` (e.g. the dataset)."""
+        if trajectories.batch_dims != 2 or "mask" not in trajectories.keys():
+            raise ValueError("fit_normalizer: expected a padded trajectory batch [N, H] with a 'mask'")
+        self.normalizer.fit(self.raw_data_from_td(trajectories, name="fit_normalizer").to(self.normalizer.mean.device),
+                            trajectories.get("mask").to(self.normalizer.mean.device))
+        return self
+
+    def _check_fitted(self) -> None:
+        if not self.normalizer.is_fitted:
+            raise ValueError("TrajectoryDiffuser: the normalizer is not fitted; call "
+                             "diffuser.fit_normalizer(dataset_trajectories) first")
+
+    def model_input(self, raw: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """Normalised data (0 on padded steps) + validity channel (+1 valid / -1 padded)."""
+        self._check_fitted()
+        m = mask.bool()[..., None]
+        x = torch.where(m, self.normalizer.normalize(raw), torch.zeros_like(raw))
+        return torch.cat([x, m.float() * 2.0 - 1.0], -1)
+
+    def condition_input(self, raw: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """Normalised condition (0 on padded steps)."""
+        self._check_fitted()
+        return torch.where(mask.bool()[..., None], self.normalizer.normalize(raw), torch.zeros_like(raw))
+
+    @staticmethod
+    def detect_mask(validity: torch.Tensor) -> torch.Tensor:
+        """Prefix mask ``[B, H]`` that best agrees with the validity channel ``[B, H]``.
+
+        The length ``L >= 1`` maximises ``sum_{h<L} v_h - sum_{h>=L} v_h`` with ``v`` clamped
+        to [-1, 1], so one stray sign flip does not cut a trajectory short (a plain
+        "first negative step" rule does).
+        """
+        v = validity.float().clamp(-1.0, 1.0)
+        agreement = 2 * v.cumsum(-1) - v.sum(-1, keepdim=True)  # score of L = 1..H
+        length = agreement.argmax(-1) + 1
+        return torch.arange(v.shape[-1], device=v.device) < length[:, None]
+
+    def decode(self, x: torch.Tensor) -> TensorDict:
+        """Model-space sample ``[B, H, transition_dim]`` -> trajectory batch (raw units, padded zeros)."""
+        mask = self.detect_mask(x[..., -1])
+        raw = self.normalizer.unnormalize(x[..., :-1]) * mask[..., None]
+        o, a = self.obs_dim, self.action_dim
+        out = {"observation": raw[..., :o], "action": raw[..., o:o + a], "mask": mask}
+        if self.reward_channel:
+            out["next"] = {"reward": raw[..., o + a:o + a + 1]}
+        return TensorDict(out, batch_size=x.shape[:2], device=x.device)
+
+    def x0_bounds(self) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """Clamp range of denoised samples in model space (``None`` if clipping is off)."""
+        if self.clip_margin is None:
+            return None
+        low, high = self.normalizer.normalized_bounds(self.clip_margin)
+        one = torch.ones(1, device=low.device)
+        return torch.cat([low, -one]), torch.cat([high, one])
+
+    # ------------------------------------------------------------------ networks
+    def encode_condition(self, cond: torch.Tensor, cond_mask: torch.Tensor, *, drop: torch.Tensor | None = None,
+                         networks: nn.ModuleDict | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Encode a normalised condition; ``drop [B]`` True -> null condition."""
+        enc = (networks or self.networks)["encoder"]
+        emb, mask = enc(cond, cond_mask)
+        if drop is not None:
+            emb, mask = enc.drop(emb, mask, drop)
+        return emb, mask
+
+    def guided_eps(self, x_t: torch.Tensor, t: torch.Tensor, cond_emb: torch.Tensor | None,
+                   cond_mask: torch.Tensor | None, *, guidance: float,
+                   networks: nn.ModuleDict | None = None) -> torch.Tensor:
+        """``eps_u + w (eps_c - eps_u)`` with both passes in ONE batched backbone call."""
+        nets = networks or self.networks
+        backbone = nets["backbone"]
+        if cond_emb is None or guidance == 1.0:
+            return backbone(x_t, t, cond_emb, cond_mask)
+        null_emb, null_mask = nets["encoder"].null(cond_emb.shape[0], cond_emb.shape[1])
+        eps = backbone(torch.cat([x_t, x_t]), torch.cat([t, t]), torch.cat([cond_emb, null_emb.to(cond_emb.dtype)]),
+                       torch.cat([cond_mask, null_mask]))
+        eps_c, eps_u = eps.chunk(2)
+        return eps_u + guidance * (eps_c - eps_u)
+
+    # ------------------------------------------------------------------ EMA
+    @torch.no_grad()
+    def update_ema(self) -> None:
+        """One EMA step of the networks (the first call copies them)."""
+        self.ema.update_parameters(self.networks)
+
+    def set_ema_decay(self, decay: float) -> None:
+        """Change the EMA decay used by later :meth:`update_ema` calls."""
+        self.ema.multi_avg_fn = get_ema_multi_avg_fn(float(decay))
+        self.ema_decay = float(decay)
+
+    def sampling_networks(self, use_ema: bool = True) -> nn.ModuleDict:
+        """The EMA networks (default) or the raw ones."""
+        if use_ema:
+            if int(self.ema.n_averaged) == 0:
+                warnings.warn("TrajectoryDiffuser: the EMA was never updated; sampling with the raw weights")
+                return self.networks
+            return self.ema.module
+        return self.networks
+
+    # ------------------------------------------------------------------ sampling
+    @torch.no_grad()
+    def generate(
+        self,
+        condition: TensorDictBase | None = None,
+        *,
+        num_samples: int | None = None,
+        horizon: int | None = None,
+        sampler: str = "ddpm",
+        steps: int = 50,
+        guidance: float = 1.2,
+        generator: torch.Generator | None = None,
+        use_ema: bool = True,
+        autocast_bf16: bool = False,
+        progress: bool = False,
+    ) -> TensorDict:
+        """Generate trajectories, one per condition (or ``num_samples`` unconditionally).
+
+        Args:
+            condition: trajectory batch ``[B, Hc]`` (observation, action, mask, reward if
+                modelled); required unless the model is unconditional.
+            num_samples: number of samples for an unconditional model.
+            horizon: generated horizon (default: the condition's, else ``self.horizon``).
+            sampler: ``"ddpm"``, ``"ddim"`` or ``"dpm++"``.
+            steps: sampler steps (= denoiser calls).
+            guidance: classifier-free guidance weight ``w`` (paper: 1.2; 1 = conditional only).
+            generator: seeds the sampler noise (reproducible samples).
+            use_ema: sample with the EMA weights (default).
+            autocast_bf16: run the networks under bf16 autocast.
+            progress: tqdm bar over sampler steps.
+
+        Returns:
+            Trajectory batch ``[B, H]`` with ``observation``, ``action``, ``mask`` (from the
+            validity channel) and ``("next", "reward")`` if modelled.
+        """
+        nets = self.sampling_networks(use_ema)
+        was_training = nets.training
+        nets.eval()
+        device = self.normalizer.mean.device
+        try:
+            ctx = torch.autocast(device.type, dtype=torch.bfloat16) if autocast_bf16 else contextlib.nullcontext()
+            cond_emb = cond_mask = None
+            if self.unconditional:
+                if num_samples is None:
+                    num_samples = condition.batch_size[0] if condition is not None else None
+                if num_samples is None:
+                    raise ValueError("generate: unconditional model needs num_samples (or a condition batch)")
+                horizon = horizon or (condition.batch_size[1] if condition is not None else self.horizon)
+            else:
+                if condition is None:
+                    raise ValueError("generate: this diffuser is conditional; pass a 'condition' trajectory batch")
+                if condition.batch_dims != 2 or "mask" not in condition.keys():
+                    raise ValueError("generate: 'condition' must be a trajectory batch [B, H] with a 'mask'")
+                condition = condition.to(device)
+                cmask = condition.get("mask").bool()
+                cond = self.condition_input(self.raw_data_from_td(condition, name="condition"), cmask)
+                with ctx:
+                    cond_emb, cond_mask = self.encode_condition(cond, cmask, networks=nets)
+                num_samples = condition.batch_size[0]
+                horizon = horizon or condition.batch_size[1]
+            if horizon is None:
+                raise ValueError("generate: unknown horizon; pass horizon=")
+
+            def denoise(x_t: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+                with ctx:
+                    return self.guided_eps(x_t, t, cond_emb, cond_mask, guidance=guidance, networks=nets)
+
+            x = self.process.sample(denoise, (num_samples, horizon, self.transition_dim), sampler=sampler,
+                                    steps=steps, generator=generator, device=device, progress=progress,
+                                    x0_bounds=self.x0_bounds())
+        finally:
+            nets.train(was_training)
+        return self.decode(x)
