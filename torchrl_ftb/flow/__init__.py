@@ -1,1 +1,20 @@
-"""flow stage."""
+"""Flow stage: flow to better (Alg. 4) — iterative improvement of the top-k trajectories."""
+from torchrl_ftb.flow.flow import (
+    FlowResult,
+    FlowToBetter,
+    adaptive_flow_steps,
+    improves,
+    masked_true_return,
+    normalized_scores,
+    trajectory_validity,
+)
+
+__all__ = [
+    "FlowResult",
+    "FlowToBetter",
+    "adaptive_flow_steps",
+    "improves",
+    "masked_true_return",
+    "normalized_scores",
+    "trajectory_validity",
+]

@@ -1,0 +1,602 @@
+"""Flow to Better, offline (paper Alg. 1), TorchRL sota-implementation style.
+
+    python recipes/ftb_offline.py                      # button-press-v3, 30 scripted labels, cpu preset
+    python recipes/ftb_offline.py preset=paper labels.teacher=success
+    python recipes/ftb_offline.py env.name=toy         # ToyLineEnv, seconds
+    python recipes/ftb_offline.py resume=true          # continue a killed run (same run_dir)
+
+Stages (each ends with a checkpoint in ``run_dir/checkpoints`` and an entry in
+``run_dir/stages.json``): dataset (generated, cached) → scripted labels → score model
+``s_psi`` → blocks → trajectory diffuser (periodic checkpoints) → flow to better → BC
+(periodic checkpoints) → evaluation. With ``resume=true`` finished stages are loaded,
+unfinished training continues from its last checkpoint; a different config, a corrupt or
+mismatched checkpoint raise a clear error and nothing is overwritten.
+
+The run directory receives ``config.yaml`` (resolved), ``metrics.json``, ``report.md``,
+``plots/*.png`` (score and true return per flow step, before-vs-after histograms) and the
+logger's files (``logs/``). The final table is printed.
+"""
+from __future__ import annotations
+
+import json
+import math
+import platform
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import hydra
+import torch
+from omegaconf import DictConfig, OmegaConf
+from tensordict import TensorDict
+
+from torchrl_ftb.analysis import novelty, plot_flow_curves, plot_histograms
+from torchrl_ftb.data import (
+    atomic_torch_save,
+    atomic_write_text,
+    trajectories_to_flat,
+    validate_trajectories,
+)
+from torchrl_ftb.data.labels import load_labels, make_scripted_labels, make_teacher, save_labels, true_return
+from torchrl_ftb.diffusion import DiffusionSampler, get_preset, load_diffuser, make_diffuser, train_diffuser
+from torchrl_ftb.diffusion.train import CHECKPOINT_NAME
+from torchrl_ftb.flow import FlowToBetter
+from torchrl_ftb.policy import (
+    evaluate_policy,
+    load_bc_checkpoint,
+    make_bc_actor,
+    make_transition_buffer,
+    observation_statistics,
+    train_bc,
+)
+from torchrl_ftb.preference import (
+    ScoreModel,
+    correlations,
+    make_block_pair_buffer,
+    make_blocks,
+    score_trajectories,
+    train_score_model,
+)
+
+STAGES = ("dataset", "labels", "score_model", "blocks", "diffuser", "flow", "bc", "eval")
+# config entries that may change between a killed run and its resume
+RESUME_FREE_KEYS = ("resume", "overwrite", "progress", "logger", "device", "run_dir", "hydra")
+
+
+# ====================================================================
+# Environment and data
+# --------------------
+
+
+def env_kind(name: str) -> str:
+    """``"toy"`` or ``"metaworld"``; anything else raises a ``ValueError`` listing the options."""
+    if name == "toy":
+        return "toy"
+    from torchrl_ftb.envs import metaworld_tasks
+
+    if name in metaworld_tasks():
+        return "metaworld"
+    raise ValueError(f"env.name={name!r} is not 'toy' or a Meta-World v3 task (e.g. button-press-v3); "
+                     f"known tasks: {', '.join(metaworld_tasks()[:8])}, ...")
+
+
+def make_env_factory(cfg: DictConfig, *, seed: int) -> Callable:
+    """Zero-argument factory of the evaluation env (a torchrl ``EnvBase``)."""
+    name, kind = cfg.env.name, env_kind(cfg.env.name)
+    if kind == "toy":
+        from torchrl_ftb.testing import ToyLineEnv
+
+        def make_toy():
+            env = ToyLineEnv(max_steps=int(cfg.dataset.horizon))
+            env.set_seed(seed)
+            return env
+
+        return make_toy
+    from torchrl_ftb.envs import make_metaworld_env
+
+    return lambda: make_metaworld_env(name, seed=seed, max_episode_steps=int(cfg.env.max_episode_steps))
+
+
+def make_true_reward_fn(cfg: DictConfig) -> Callable | None:
+    """Ground-truth ``r(s, a)`` for statistics (toy: closed form; Meta-World: simulator)."""
+    if not cfg.flow.true_reward:
+        return None
+    if env_kind(cfg.env.name) == "toy":
+        from torchrl_ftb.testing import toy_reward
+
+        return toy_reward
+    from torchrl_ftb.envs import metaworld_true_reward
+
+    task = cfg.env.name
+    return lambda obs, act: metaworld_true_reward(task, obs, act)[0]
+
+
+def make_dataset(cfg: DictConfig, *, progress: bool) -> tuple[TensorDict, dict]:
+    """The trajectory batch ``[N, H]`` (Meta-World: generated once and cached)."""
+    d = cfg.dataset
+    if env_kind(cfg.env.name) == "toy":
+        from torchrl_ftb.testing import make_toy_dataset
+
+        td = make_toy_dataset(num_trajectories=int(d.num_trajectories), horizon=int(d.horizon), seed=int(d.seed))
+        return td, {"env_id": "toy", "path": None}
+    from torchrl_ftb.datasets import make_metaworld_dataset
+
+    return make_metaworld_dataset(
+        cfg.env.name, episodes_per_group=int(d.episodes_per_group), noise=float(d.noise), seed=int(d.seed),
+        max_steps=int(cfg.env.max_episode_steps), cache_dir=d.cache_dir, progress=progress,
+        num_workers=int(d.num_workers),
+    )
+
+
+def check_env_matches(make_env: Callable, trajs: TensorDict, *, name: str) -> tuple[int, int]:
+    """Raise a clear ``ValueError`` when the dataset's dims differ from the env's."""
+    env = make_env()
+    try:
+        obs_dim = int(env.observation_spec["observation"].shape[-1])
+        act_dim = int(env.action_spec.shape[-1])
+    finally:
+        env.close()
+    validate_trajectories(trajs, name=f"dataset for env {name!r}", obs_dim=obs_dim, action_dim=act_dim)
+    return obs_dim, act_dim
+
+
+def make_logger(cfg: DictConfig, run_dir: Path):
+    """A torchrl logger under ``run_dir/logs`` (``None`` when ``logger.backend`` is empty)."""
+    from torchrl.record.loggers import get_logger
+
+    if not cfg.logger.backend:
+        return None
+    wandb_kwargs = {"project": cfg.logger.project_name, "mode": cfg.logger.mode,
+                    "config": OmegaConf.to_container(cfg, resolve=True)}
+    return get_logger(cfg.logger.backend, logger_name=str(run_dir / "logs"),
+                      experiment_name=f"ftb_{cfg.env.name}_seed{cfg.seed}", wandb_kwargs=wandb_kwargs)
+
+
+# ====================================================================
+# Run directory bookkeeping
+# -------------------------
+
+
+def git_commit() -> str | None:
+    """``git rev-parse HEAD`` of the repository, or ``None``."""
+    try:
+        out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(__file__).resolve().parent,
+                             capture_output=True, text=True, timeout=10)
+        return (out.stdout.strip() or None) if out.returncode == 0 else None
+    except (OSError, subprocess.SubprocessError):
+        return None
+
+
+def machine_info() -> dict[str, Any]:
+    return {"platform": platform.platform(), "processor": platform.processor(), "python": sys.version.split()[0],
+            "torch": torch.__version__, "threads": torch.get_num_threads(),
+            "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None}
+
+
+def _comparable(cfg: DictConfig) -> dict:
+    full = OmegaConf.to_container(cfg, resolve=True)
+    return {k: v for k, v in full.items() if k not in RESUME_FREE_KEYS}
+
+
+def _diff_keys(a: Any, b: Any, prefix: str = "") -> list[str]:
+    if isinstance(a, dict) and isinstance(b, dict):
+        out = []
+        for k in sorted(set(a) | set(b), key=str):
+            out += _diff_keys(a.get(k, "<missing>"), b.get(k, "<missing>"), f"{prefix}{k}.")
+        return out
+    return [] if a == b else [f"{prefix[:-1]}: {b!r} -> {a!r}"]
+
+
+class RunDir:
+    """Stage markers (``stages.json``), resolved config and checkpoint paths of one run."""
+
+    def __init__(self, cfg: DictConfig) -> None:
+        self.path = Path(cfg.run_dir).expanduser().resolve()
+        self.ckpt = self.path / "checkpoints"
+        self.stages_file = self.path / "stages.json"
+        self.config_file = self.path / "config.yaml"
+        self.resume = bool(cfg.resume)
+        started = self.stages_file.exists() or self.ckpt.exists()
+        if started and not self.resume:
+            if not cfg.overwrite:
+                raise ValueError(
+                    f"{self.path}: run directory already holds a run; pass resume=true to continue it, "
+                    "overwrite=true to start again, or another run_dir"
+                )
+            shutil.rmtree(self.ckpt, ignore_errors=True)
+            for name in ("stages.json", "metrics.json", "report.md"):
+                (self.path / name).unlink(missing_ok=True)
+        self.stages: dict[str, dict] = {}
+        if self.resume and self.stages_file.exists():
+            try:
+                self.stages = json.loads(self.stages_file.read_text())
+            except json.JSONDecodeError as err:
+                raise ValueError(f"{self.stages_file}: corrupt stage file ({err})") from err
+        if self.resume and self.config_file.exists():
+            old = OmegaConf.to_container(OmegaConf.load(self.config_file), resolve=True)
+            old = {k: v for k, v in old.items() if k not in RESUME_FREE_KEYS}
+            diff = _diff_keys(_comparable(cfg), old)
+            if diff:
+                raise ValueError(f"{self.config_file}: resume=true with a different config: " + "; ".join(diff))
+        self.path.mkdir(parents=True, exist_ok=True)
+        self.ckpt.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(self.config_file, OmegaConf.to_yaml(cfg, resolve=True))
+
+    def done(self, stage: str) -> bool:
+        return bool(self.stages.get(stage, {}).get("done"))
+
+    def mark(self, stage: str, **summary: Any) -> None:
+        self.stages[stage] = {"done": True, **summary}
+        atomic_write_text(self.stages_file, json.dumps(self.stages, indent=2, default=_json_default))
+
+
+def _json_default(x: Any) -> Any:
+    if isinstance(x, torch.Tensor):
+        return x.tolist()
+    if isinstance(x, Path):
+        return str(x)
+    return str(x)
+
+
+def _load_ckpt(path: Path, kind: str) -> dict:
+    """``torch.load(weights_only=True)`` with a clear error for missing/corrupt/foreign files."""
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: checkpoint missing although stages.json marks it done")
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:  # corrupt / truncated
+        raise ValueError(f"{path}: corrupt or unreadable checkpoint ({type(err).__name__}: {err})") from err
+    if not isinstance(ckpt, dict) or ckpt.get("kind") != kind:
+        raise ValueError(f"{path}: not a {kind} checkpoint")
+    return ckpt
+
+
+def _td_to_ckpt(td: TensorDict) -> dict:
+    return {"data": td.to_dict(), "batch_size": list(td.batch_size)}
+
+
+def _td_from_ckpt(d: dict, path: Path, key: str) -> TensorDict:
+    try:
+        return TensorDict(d[key]["data"], batch_size=d[key]["batch_size"])
+    except Exception as err:
+        raise ValueError(f"{path}: malformed entry {key!r} ({err})") from err
+
+
+# ====================================================================
+# Stages
+# ------
+
+
+def stage_score_model(cfg, run: RunDir, labels, obs_dim, act_dim, device, logger) -> ScoreModel:
+    sm_cfg = cfg.score_model
+    model = ScoreModel(obs_dim, act_dim, num_cells=int(sm_cfg.num_cells), num_layers=int(sm_cfg.num_layers),
+                       gamma=float(sm_cfg.gamma), seed=int(cfg.seed), device=device)
+    path = run.ckpt / "score_model.pt"
+    if run.done("score_model"):
+        ckpt = _load_ckpt(path, "torchrl_ftb.score_model")
+        try:
+            model.load_state_dict(ckpt["state_dict"])
+        except (RuntimeError, KeyError) as err:
+            raise ValueError(f"{path}: score model checkpoint does not match the config ({err})") from err
+        return model
+    out = train_score_model(
+        model, labels, steps=int(sm_cfg.steps), batch_size=int(sm_cfg.batch_size), lr=float(sm_cfg.lr),
+        eval_fraction=float(sm_cfg.eval_fraction), seed=int(cfg.seed), logger=logger,
+        progress=bool(cfg.progress), device=device,
+    )
+    atomic_torch_save({"kind": "torchrl_ftb.score_model", "hparams": model.hparams,
+                       "state_dict": model.state_dict()}, path)
+    run.mark("score_model", **{k: v for k, v in out.items() if isinstance(v, (int, float)) and math.isfinite(v)})
+    return model
+
+
+def stage_blocks(cfg, run: RunDir, trajs, model) -> tuple[torch.Tensor, torch.Tensor]:
+    path = run.ckpt / "blocks.pt"
+    n = trajs.batch_size[0]
+    if run.done("blocks"):
+        ckpt = _load_ckpt(path, "torchrl_ftb.blocks")
+        scores, ids = ckpt.get("scores"), ckpt.get("block_ids")
+        if not isinstance(scores, torch.Tensor) or scores.shape != (n,) or ids.shape != (n,):
+            raise ValueError(f"{path}: blocks checkpoint does not match the dataset of {n} trajectories")
+        return scores, ids
+    scores = score_trajectories(model, trajs).cpu()
+    ids = make_blocks(scores, int(cfg.blocks.num_blocks), seed=int(cfg.seed))
+    atomic_torch_save({"kind": "torchrl_ftb.blocks", "scores": scores, "block_ids": ids}, path)
+    sizes = torch.bincount(ids).tolist()
+    run.mark("blocks", num_blocks=int(ids.max()) + 1, block_sizes=sizes)
+    return scores, ids
+
+
+def diffuser_settings(cfg: DictConfig) -> dict:
+    """Training/sampling numbers: the config's, or the diffusion preset's where the config says null."""
+    d = cfg.diffuser
+    preset = get_preset(str(d.preset))
+    train, sample = preset["train"], preset["sample"]
+    clip = train.get("grad_clip") if d.grad_clip == "preset" else d.grad_clip
+    return {
+        "steps": int(train["steps"] if d.steps is None else d.steps),
+        "batch_size": int(train["batch_size"] if d.batch_size is None else d.batch_size),
+        "lr": float(train["lr"] if d.lr is None else d.lr),
+        "grad_clip": None if clip is None else float(clip),
+        "sampler": str(sample["sampler"] if d.sampler is None else d.sampler),
+        "sample_steps": int(sample["steps"] if d.sample_steps is None else d.sample_steps),
+        "guidance": float(sample["guidance"] if d.guidance is None else d.guidance),
+    }
+
+
+def make_sampler(cfg, diffuser) -> DiffusionSampler:
+    s = diffuser_settings(cfg)
+    # a generator (not ``seed=``): every flow step must draw fresh noise, reproducibly
+    device = diffuser.normalizer.mean.device
+    generator = torch.Generator(device=device).manual_seed(int(cfg.seed))
+    return DiffusionSampler(diffuser, sampler=s["sampler"], steps=s["sample_steps"], guidance=s["guidance"],
+                            generator=generator, autocast_bf16=bool(cfg.diffuser.autocast_bf16))
+
+
+def stage_diffuser(cfg, run: RunDir, trajs, block_ids, obs_dim, act_dim, device, logger):
+    d = cfg.diffuser
+    horizon = int(trajs.batch_size[1])
+    overrides = {} if d.overrides is None else OmegaConf.to_container(d.overrides, resolve=True)
+    diffuser = make_diffuser(str(d.preset), obs_dim=obs_dim, action_dim=act_dim, horizon=horizon, **overrides)
+    ckpt_dir = run.ckpt / "diffuser"
+    path = ckpt_dir / CHECKPOINT_NAME
+    if run.done("diffuser"):
+        return load_diffuser(path, diffuser=diffuser, map_location=device), run.stages["diffuser"]
+    s = diffuser_settings(cfg)
+    diffuser.fit_normalizer(trajs).to(device)
+    buffer = make_block_pair_buffer(trajs, block_ids, batch_size=s["batch_size"], seed=int(cfg.seed))
+    out = train_diffuser(
+        diffuser, buffer, steps=s["steps"], lr=s["lr"], grad_clip=s["grad_clip"], logger=logger,
+        checkpoint_dir=ckpt_dir, checkpoint_every=int(d.checkpoint_every), resume=run.resume,
+        progress=bool(cfg.progress), device=device, autocast_bf16=bool(d.autocast_bf16), seed=int(cfg.seed),
+    )
+    summary = {"steps": out["step"], "resumed_from": out["resumed_from"], "final_loss": out["final_loss"],
+               "wall_time_s": out["wall_time_s"]}
+    run.mark("diffuser", **summary)
+    return diffuser, summary
+
+
+def stage_flow(cfg, run: RunDir, trajs, scores, block_ids, sampler, model, true_reward_fn, logger) -> dict:
+    path = run.ckpt / "flow.pt"
+    if run.done("flow"):
+        ckpt = _load_ckpt(path, "torchrl_ftb.flow")
+        out = {k: _td_from_ckpt(ckpt, path, k) for k in ("trajectories", "original", "generated")}
+        keys = ("stats", "summary", "scores", "original_scores", "source_step", "true_returns", "original_true_returns")
+        return {**out, **{k: ckpt.get(k) for k in keys}}
+    f = cfg.flow
+    flow = FlowToBetter(
+        sampler, model, top_k=int(f.top_k), threshold=float(f.threshold), num_blocks=int(cfg.blocks.num_blocks),
+        flow_steps=None if f.flow_steps is None else int(f.flow_steps),
+        max_flow_steps=None if f.max_flow_steps is None else int(f.max_flow_steps),
+        min_flow_steps=int(f.min_flow_steps), early_stop_fraction=float(f.early_stop_fraction),
+        max_abs_z=float(f.max_abs_z), action_tolerance=float(f.action_tolerance),
+        min_length=None if f.min_length is None else int(f.min_length),
+        true_reward_fn=true_reward_fn, batch_size=int(f.batch_size), seed=int(cfg.seed), logger=logger,
+        progress=bool(cfg.progress),
+    )
+    res = flow(trajs, scores=scores, block_ids=block_ids)
+    ckpt = {"kind": "torchrl_ftb.flow", "trajectories": _td_to_ckpt(res.trajectories),
+            "original": _td_to_ckpt(res.original), "generated": _td_to_ckpt(res.generated),
+            "scores": res.scores, "original_scores": res.original_scores, "source_step": res.source_step,
+            "stats": res.stats, "summary": res.summary, "true_returns": res.true_returns,
+            "original_true_returns": res.original_true_returns}
+    atomic_torch_save(ckpt, path)
+    run.mark("flow", **res.summary)
+    return {k: v for k, v in ckpt.items() if k != "kind"} | {
+        "trajectories": res.trajectories, "original": res.original, "generated": res.generated}
+
+
+def stage_bc(cfg, run: RunDir, improved, obs_dim, act_dim, device, logger):
+    b = cfg.bc
+    flat = trajectories_to_flat(improved.select("observation", "action", "mask"))
+    loc, scale = observation_statistics(flat.get("observation"))
+    torch.manual_seed(int(cfg.seed))
+    actor = make_bc_actor(obs_dim, act_dim, hidden=tuple(b.hidden), obs_loc=loc, obs_scale=scale, device=device)
+    path = run.ckpt / "bc.pt"
+    if run.done("bc"):
+        load_bc_checkpoint(path, actor)
+        return actor, run.stages["bc"]
+    buffer = make_transition_buffer(flat, batch_size=int(b.batch_size), seed=int(cfg.seed))
+    out = train_bc(
+        actor, buffer, steps=int(b.steps), batch_size=int(b.batch_size), lr=float(b.lr),
+        weight_decay=float(b.weight_decay), seed=int(cfg.seed), logger=logger, progress=bool(cfg.progress),
+        device=device, checkpoint_path=path, checkpoint_every=int(b.checkpoint_every), resume=run.resume,
+    )
+    summary = {"steps": out["steps"], "resumed_from": out["start_step"], "final_loss": out["loss"],
+               "num_transitions": int(flat.numel())}
+    run.mark("bc", **summary)
+    return actor, summary
+
+
+# ====================================================================
+# Reporting
+# ---------
+
+
+def _fmt(v: Any) -> str:
+    if isinstance(v, float):
+        return f"{v:.4g}"
+    return str(v)
+
+
+def final_table(metrics: dict) -> list[tuple[str, str]]:
+    ev, fl = metrics["eval"], metrics["flow"]
+    rows = [("env", metrics["env"]), ("preset", metrics["preset"]), ("teacher", metrics["teacher"])]
+    if "success_rate" in ev:
+        rows.append(("success rate (FTB policy)", _fmt(ev["success_rate"])))
+    rows += [
+        ("return (FTB policy)", f"{ev['return_mean']:.4g} ± {ev['return_std']:.3g}"),
+        ("episode length", _fmt(ev["length_mean"])),
+        ("score s_psi top-k: before -> after", f"{fl['score_mean_before']:.4g} -> {fl['score_mean_after']:.4g}"),
+    ]
+    if "true_return_mean_before" in fl:
+        rows.append(("true return top-k: before -> after",
+                     f"{fl['true_return_mean_before']:.4g} -> {fl['true_return_mean_after']:.4g}"))
+    rows += [
+        ("flow steps run / planned", f"{int(fl['flow_steps_run'])} / {int(fl['flow_steps_planned'])}"),
+        ("generated trajectories in final set", _fmt(fl["fraction_generated_in_final"])),
+        ("score Spearman vs true return", _fmt(metrics["score_quality"].get("spearman_return", float("nan")))),
+        ("wall time (s)", _fmt(metrics["wall_time_s"])),
+    ]
+    return rows
+
+
+def write_report(run: RunDir, metrics: dict, flow_stats: list[dict]) -> Path:
+    lines = [f"# FTB offline — {metrics['env']} ({metrics['preset']} preset, teacher {metrics['teacher']})", "",
+             "| metric | value |", "|---|---|"]
+    lines += [f"| {k} | {v} |" for k, v in final_table(metrics)]
+    lines += ["", "## Flow steps", ""]
+    if flow_stats:
+        keys = list(flow_stats[0].keys())
+        lines += ["| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)]
+        lines += ["| " + " | ".join(_fmt(r.get(k)) for k in keys) + " |" for r in flow_stats]
+    else:
+        lines.append("No flow step was run.")
+    lines += ["", "## Stages", ""]
+    for name in STAGES:
+        summary = {k: v for k, v in run.stages.get(name, {}).items() if k != "done"}
+        lines.append(f"- **{name}**: " + ", ".join(f"{k}={_fmt(v)}" for k, v in summary.items()))
+    lines += ["", "## Plots", ""] + [f"![{p.stem}](plots/{p.name})" for p in sorted((run.path / "plots").glob("*.png"))]
+    lines += ["", f"git commit: `{metrics.get('git_commit')}`", ""]
+    path = run.path / "report.md"
+    atomic_write_text(path, "\n".join(lines))
+    return path
+
+
+# ====================================================================
+# Main
+# ----
+
+
+def run(cfg: DictConfig) -> dict:
+    """Run (or resume) the whole FTB pipeline for ``cfg``; returns the metrics dict."""
+    if cfg.preset not in cfg.presets:
+        raise ValueError(f"preset={cfg.preset!r} is unknown; choose one of {sorted(cfg.presets)}")
+    kind = env_kind(cfg.env.name)
+    if cfg.labels.teacher not in ("return", "success"):
+        raise ValueError(f"labels.teacher={cfg.labels.teacher!r}: choose 'return' or 'success'")
+    t_start = time.perf_counter()
+    torch.manual_seed(int(cfg.seed))
+    device = torch.device(cfg.device)
+    run_dir = RunDir(cfg)
+    logger = make_logger(cfg, run_dir.path)
+    progress = bool(cfg.progress)
+    timings: dict[str, float] = {}
+
+    def timed(name: str, t0: float) -> None:
+        timings[name] = timings.get(name, 0.0) + time.perf_counter() - t0
+
+    # 1. dataset ------------------------------------------------------------------------
+    t0 = time.perf_counter()
+    trajs, meta = make_dataset(cfg, progress=progress)
+    eval_env = make_env_factory(cfg, seed=int(cfg.eval.seed))
+    obs_dim, act_dim = check_env_matches(eval_env, trajs, name=cfg.env.name)
+    if not run_dir.done("dataset"):
+        run_dir.mark("dataset", num_trajectories=int(trajs.batch_size[0]), horizon=int(trajs.batch_size[1]),
+                     obs_dim=obs_dim, action_dim=act_dim, path=meta.get("path"))
+    elif run_dir.stages["dataset"].get("num_trajectories") != int(trajs.batch_size[0]):
+        raise ValueError(f"{run_dir.stages_file}: the dataset changed since the run started")
+    timed("dataset", t0)
+
+    # 2. labels -------------------------------------------------------------------------
+    t0 = time.perf_counter()
+    teacher = make_teacher(str(cfg.labels.teacher), discount=float(cfg.labels.discount))
+    label_dir = run_dir.ckpt / "labels"
+    if run_dir.done("labels"):
+        labels, _ = load_labels(label_dir)
+    else:
+        labels = make_scripted_labels(trajs, num_pairs=int(cfg.labels.num_pairs), teacher=teacher,
+                                      seed=int(cfg.labels.seed))
+        save_labels(labels, label_dir, meta={"teacher": teacher.config()})
+        run_dir.mark("labels", num_pairs=int(labels.batch_size[0]), teacher=teacher.name,
+                     ties=int((labels.get("label") == 0.5).sum()))
+    timed("labels", t0)
+
+    # 3. score model, 4. blocks ---------------------------------------------------------
+    t0 = time.perf_counter()
+    model = stage_score_model(cfg, run_dir, labels, obs_dim, act_dim, device, logger)
+    timed("score_model", t0)
+    t0 = time.perf_counter()
+    scores, block_ids = stage_blocks(cfg, run_dir, trajs, model)
+    returns = true_return(trajs, discount=float(cfg.labels.discount))
+    quality = {f"{k}_return": v for k, v in correlations(scores, returns).items()}
+    if ("next", "success") in trajs.keys(True):
+        succ = (trajs.get(("next", "success")).squeeze(-1) & trajs.get("mask")).any(-1).float()
+        quality.update({f"{k}_success": v for k, v in correlations(scores, succ).items()})
+    timed("blocks", t0)
+
+    # 5. diffuser -----------------------------------------------------------------------
+    t0 = time.perf_counter()
+    diffuser, diffuser_summary = stage_diffuser(cfg, run_dir, trajs, block_ids, obs_dim, act_dim, device, logger)
+    timed("diffuser", t0)
+
+    # 6. flow ---------------------------------------------------------------------------
+    t0 = time.perf_counter()
+    true_reward_fn = make_true_reward_fn(cfg)
+    flow = stage_flow(cfg, run_dir, trajs, scores, block_ids, make_sampler(cfg, diffuser), model,
+                      true_reward_fn, logger)
+    timed("flow", t0)
+
+    # 7. BC -----------------------------------------------------------------------------
+    t0 = time.perf_counter()
+    actor, bc_summary = stage_bc(cfg, run_dir, flow["trajectories"], obs_dim, act_dim, device, logger)
+    timed("bc", t0)
+
+    # 8. evaluation ---------------------------------------------------------------------
+    t0 = time.perf_counter()
+    ev = evaluate_policy(eval_env, actor, num_episodes=int(cfg.eval.num_episodes), seed=int(cfg.eval.seed),
+                         max_steps=int(cfg.eval.max_steps), num_envs=int(cfg.eval.num_envs),
+                         stop_on_success=bool(cfg.eval.stop_on_success) and kind == "metaworld",
+                         progress=progress)
+    run_dir.mark("eval", **ev)
+    if logger is not None:
+        for k, v in ev.items():
+            logger.log_scalar(f"eval/{k}", float(v), step=int(cfg.bc.steps))
+    timed("eval", t0)
+
+    # analysis, plots, report -------------------------------------------------------------
+    plots = run_dir.path / "plots"
+    summary = dict(flow["summary"])
+    before = {"score_mean": summary["score_mean_before"], "score_max": summary["score_max_before"]}
+    if "true_return_mean_before" in summary:
+        before.update(true_return_mean=summary["true_return_mean_before"],
+                      true_return_max=summary["true_return_max_before"])
+    plot_flow_curves(flow["stats"], plots / "flow_steps.png", before=before, title=f"FTB flow — {cfg.env.name}")
+    plot_histograms({"original top-k": flow["original_scores"], "after flow": flow["scores"]},
+                    plots / "scores_before_after.png", xlabel="score s_psi")
+    analysis: dict[str, Any] = {}
+    if flow.get("true_returns") is not None:
+        ret0, ret1 = flow["original_true_returns"], flow["true_returns"]
+        plot_histograms({"original top-k": ret0, "after flow": ret1}, plots / "true_return_before_after.png",
+                        xlabel="true return")
+        analysis["improvement"] = {k: v for k, v in summary.items() if k.startswith("true_return_")}
+    if flow["generated"].batch_size[0]:
+        nov = novelty(flow["generated"], trajs.select("observation", "action", "mask"), seed=int(cfg.seed))
+        analysis["novelty"] = {"generated_mean": nov["generated_mean"], "perturbed_mean": nov["perturbed_mean"]}
+
+    metrics = {
+        "env": cfg.env.name, "preset": cfg.preset, "teacher": teacher.name, "seed": int(cfg.seed),
+        "eval": ev, "flow": summary, "flow_stats": flow["stats"], "score_quality": quality,
+        "diffuser": diffuser_summary, "bc": bc_summary, "analysis": analysis,
+        "stage_time_s": timings, "wall_time_s": time.perf_counter() - t_start,
+        "git_commit": git_commit(), "machine": machine_info(),
+        "command": " ".join(sys.argv), "run_dir": str(run_dir.path),
+    }
+    atomic_write_text(run_dir.path / "metrics.json", json.dumps(metrics, indent=2, default=_json_default))
+    write_report(run_dir, metrics, flow["stats"])
+    rows = final_table(metrics)
+    width = max(len(k) for k, _ in rows)
+    print("\n" + "\n".join(f"{k:<{width}}  {v}" for k, v in rows) + f"\nrun dir: {run_dir.path}")
+    return metrics
+
+
+@hydra.main(config_path="config", config_name="ftb_offline", version_base="1.3")
+def main(cfg: DictConfig) -> None:
+    run(cfg)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,129 @@
+"""Tests of torchrl_ftb.policy: BC actor, BC training (+ resume), evaluation rollouts."""
+from __future__ import annotations
+
+import pytest
+import torch
+from tensordict import TensorDict
+from tensordict.nn import TensorDictModule
+
+from torchrl_ftb.data import trajectories_to_flat
+from torchrl_ftb.policy import (
+    evaluate_policy,
+    load_bc_checkpoint,
+    make_bc_actor,
+    observation_statistics,
+    train_bc,
+)
+from torchrl_ftb.testing import MetaWorldMockEnv, ToyLineEnv, make_toy_dataset, toy_optimal_return
+
+pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
+H = 16
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    """Tiny models: one thread is faster than two on a shared 2-core machine."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def _expert_transitions(n: int = 64) -> TensorDict:
+    td = make_toy_dataset(num_trajectories=n, horizon=H, seed=0, quality=torch.ones(n), noise=0.1)
+    return trajectories_to_flat(td).select("observation", "action")
+
+
+def _toy_actor(flat: TensorDict, seed: int = 0):
+    torch.manual_seed(seed)
+    loc, scale = observation_statistics(flat["observation"])
+    return make_bc_actor(3, 2, hidden=(64, 64), obs_loc=loc, obs_scale=scale)
+
+
+def test_bc_on_expert_data_reaches_near_optimal_return():
+    flat = _expert_transitions()
+    actor = _toy_actor(flat)
+    make_env = lambda: ToyLineEnv(max_steps=H)  # noqa: E731
+    before = evaluate_policy(make_env, actor, num_episodes=4, seed=1, max_steps=H)
+    train_bc(actor, flat, steps=300, batch_size=256, lr=1e-3, weight_decay=0.0, progress=False)
+    after = evaluate_policy(make_env, actor, num_episodes=4, seed=1, max_steps=H)
+    assert after["return_mean"] >= 0.9 * toy_optimal_return(H)
+    assert after["return_mean"] > before["return_mean"] + 5.0
+    assert after["success_rate"] == 1.0
+
+
+def test_actor_is_bounded_and_stores_normalizer():
+    actor = make_bc_actor(3, 2, hidden=(8,), obs_loc=torch.ones(3), obs_scale=2 * torch.ones(3), squash="clip")
+    out = actor(TensorDict({"observation": 100 * torch.randn(32, 3)}, [32]))
+    assert out["action"].abs().max() <= 1.0
+    sd = actor.state_dict()
+    assert torch.equal(sd["module.normalizer.scale"], 2 * torch.ones(3))
+    with pytest.raises(ValueError, match="obs_dim"):
+        make_bc_actor(3, 2, obs_loc=torch.zeros(4))
+    with pytest.raises(ValueError, match="squash"):
+        make_bc_actor(3, 2, squash="relu")
+
+
+class _GoalReacher(torch.nn.Module):
+    """Scripted policy for MetaWorldMockEnv: move the hand (obs[0:3]) towards the goal (obs[-3:])."""
+
+    def forward(self, obs):
+        delta = ((obs[..., -3:] - obs[..., 0:3]) / 0.05).clamp(-1, 1)
+        return torch.cat([delta, torch.zeros_like(delta[..., :1])], -1)
+
+
+def test_evaluation_reports_success_on_metaworld_mock():
+    reacher = TensorDictModule(_GoalReacher(), ["observation"], ["action"])
+    make_env = lambda: MetaWorldMockEnv(max_steps=30)  # noqa: E731
+    full = evaluate_policy(make_env, reacher, num_episodes=4, seed=0, max_steps=30)
+    early = evaluate_policy(make_env, reacher, num_episodes=4, seed=0, max_steps=30, stop_on_success=True)
+    assert full["success_rate"] == 1.0 and early["success_rate"] == 1.0
+    assert early["length_mean"] < full["length_mean"] == 30.0
+    # a policy that does not move never succeeds
+    idle = TensorDictModule(lambda o: torch.zeros(*o.shape[:-1], 4), ["observation"], ["action"])
+    idle_out = evaluate_policy(make_env, idle, num_episodes=3, seed=0, max_steps=30)
+    assert idle_out["success_rate"] == 0.0
+    # batched evaluation counts the requested number of episodes and agrees on success
+    batched = evaluate_policy(make_env, reacher, num_episodes=3, seed=0, max_steps=30, num_envs=2,
+                              stop_on_success=True, normalized_score_fn=lambda r: 100 * r)
+    assert batched["num_episodes"] == 3 and batched["success_rate"] == 1.0
+    assert batched["normalized_score"] == pytest.approx(100 * batched["return_mean"], rel=1e-5)
+
+
+def test_stop_on_success_requires_success_key():
+    from torchrl.envs.libs.gym import GymEnv  # noqa: F401  (import cost only)
+    from torchrl.testing.mocking_classes import ContinuousActionVecMockEnv
+
+    actor = make_bc_actor(7, 7, hidden=(4,))
+    with pytest.raises(ValueError, match="success"):
+        evaluate_policy(ContinuousActionVecMockEnv, actor, num_episodes=1, max_steps=2, stop_on_success=True)
+
+
+def test_bc_checkpoint_resume_and_errors(tmp_path):
+    flat = _expert_transitions(16)
+    ckpt = tmp_path / "bc.pt"
+    actor = _toy_actor(flat)
+    train_bc(actor, flat, steps=20, batch_size=32, progress=False, checkpoint_path=ckpt, checkpoint_every=10)
+    saved = torch.load(ckpt, weights_only=True)
+    assert saved["step"] == 20
+    resumed = _toy_actor(flat, seed=1)
+    out = train_bc(resumed, flat, steps=30, batch_size=32, progress=False, checkpoint_path=ckpt, resume=True)
+    assert out["start_step"] == 20 and torch.load(ckpt, weights_only=True)["step"] == 30
+    # a checkpoint for another architecture is refused, the file is left alone
+    other = make_bc_actor(3, 2, hidden=(8,))
+    before = ckpt.read_bytes()
+    with pytest.raises(ValueError, match="does not match"):
+        train_bc(other, flat, steps=40, batch_size=32, progress=False, checkpoint_path=ckpt, resume=True)
+    assert ckpt.read_bytes() == before
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"not a checkpoint")
+    with pytest.raises(ValueError, match="corrupt"):
+        load_bc_checkpoint(bad, actor)
+
+
+def test_bc_rejects_bad_transitions():
+    actor = make_bc_actor(3, 2, hidden=(4,))
+    with pytest.raises(ValueError, match="action"):
+        train_bc(actor, TensorDict({"observation": torch.zeros(4, 3)}, [4]), steps=1, progress=False)
+    with pytest.raises(ValueError, match=r"\[T\]"):
+        train_bc(actor, make_toy_dataset(num_trajectories=2, horizon=4), steps=1, progress=False)

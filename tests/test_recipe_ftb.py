@@ -1,0 +1,118 @@
+"""Tests of recipes/ftb_offline.py: tiny toy run end to end, kill-and-resume, clear errors."""
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+
+ROOT = Path(__file__).resolve().parents[1]
+CONFIG_DIR = ROOT / "recipes" / "config"
+TINY = [
+    "env.name=toy", "dataset.horizon=16", "dataset.num_trajectories=48", "labels.num_pairs=30",
+    "score_model.steps=40", "score_model.num_cells=32", "diffuser.preset=tiny", "diffuser.steps=40",
+    "diffuser.overrides={hidden_dim:16,cond_dim:16}",
+    "diffuser.checkpoint_every=2", "diffuser.sampler=ddim", "diffuser.sample_steps=4", "flow.top_k=8",
+    "flow.max_flow_steps=2", "bc.steps=40", "bc.batch_size=128", "bc.hidden=[32,32]", "bc.checkpoint_every=10",
+    "eval.num_episodes=2", "progress=false", "logger.backend=csv",
+]
+
+pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    """Tiny models: one thread is faster than two on a shared 2-core machine."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def _recipe():
+    spec = importlib.util.spec_from_file_location("ftb_offline_recipe", ROOT / "recipes" / "ftb_offline.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _cfg(run_dir: Path, *extra: str):
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+        return compose(config_name="ftb_offline", overrides=[*TINY, f"run_dir={run_dir}", *extra])
+
+
+def test_kill_during_diffuser_training_then_resume_end_to_end(tmp_path):
+    run_dir = tmp_path / "run"
+    ckpt = run_dir / "checkpoints" / "diffuser" / "diffuser_last.pt"
+    cmd = [sys.executable, str(ROOT / "recipes" / "ftb_offline.py"), *TINY, f"run_dir={run_dir}"]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        deadline = time.time() + 90
+        while not ckpt.exists():
+            if proc.poll() is not None:
+                pytest.fail(f"recipe exited early ({proc.returncode}): {proc.stderr.read().decode()[-2000:]}")
+            if time.time() > deadline:
+                pytest.fail("no diffuser checkpoint within 90 s")
+            time.sleep(0.02)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    stages = json.loads((run_dir / "stages.json").read_text())
+    assert stages["score_model"]["done"] and stages["blocks"]["done"] and "diffuser" not in stages
+    killed_at = int(torch.load(ckpt, weights_only=True)["step"])
+    assert 0 < killed_at < 40
+
+    recipe = _recipe()
+    # a fresh run into the same directory is refused (nothing overwritten)
+    with pytest.raises(ValueError, match="resume=true"):
+        recipe.run(_cfg(run_dir))
+    # resuming with a different config is refused too
+    with pytest.raises(ValueError, match="different config"):
+        recipe.run(_cfg(run_dir, "resume=true", "flow.threshold=1.5"))
+    metrics = recipe.run(_cfg(run_dir, "resume=true"))
+    assert metrics["diffuser"]["resumed_from"] >= killed_at and metrics["diffuser"]["steps"] == 40
+    assert metrics["bc"]["steps"] == 40 and metrics["eval"]["num_episodes"] == 2
+    for name in ("metrics.json", "report.md", "config.yaml", "plots/flow_steps.png",
+                 "plots/scores_before_after.png", "plots/true_return_before_after.png"):
+        assert (run_dir / name).is_file(), name
+    assert "success rate" in (run_dir / "report.md").read_text()
+    # the score model learnt the toy preference; the final set is at least as good as the start
+    assert metrics["score_quality"]["spearman_return"] > 0.5
+    assert metrics["flow"]["score_mean_after"] >= metrics["flow"]["score_mean_before"]
+
+    # a second resume loads every finished stage and retrains nothing
+    again = recipe.run(_cfg(run_dir, "resume=true"))
+    assert again["eval"] == metrics["eval"]
+
+    # a corrupt checkpoint is a clear error and is left as it was
+    score_ckpt = run_dir / "checkpoints" / "score_model.pt"
+    score_ckpt.write_bytes(b"garbage")
+    with pytest.raises(ValueError, match="corrupt"):
+        recipe.run(_cfg(run_dir, "resume=true"))
+    assert score_ckpt.read_bytes() == b"garbage"
+
+
+def test_bad_config_is_a_clear_error(tmp_path):
+    recipe = _recipe()
+    with pytest.raises(ValueError, match="not 'toy' or a Meta-World"):
+        recipe.run(_cfg(tmp_path / "a", "env.name=no-such-task-v3"))
+    with pytest.raises(ValueError, match="preset='gpu' is unknown"):
+        recipe.run(_cfg(tmp_path / "b", "preset=gpu"))
+    with pytest.raises(ValueError, match="teacher"):
+        recipe.run(_cfg(tmp_path / "c", "labels.teacher=oracle"))
+    # a dataset whose dims do not match the env
+    from torchrl_ftb.testing import MetaWorldMockEnv, make_toy_dataset
+
+    with pytest.raises(ValueError, match="obs_dim=39"):
+        recipe.check_env_matches(MetaWorldMockEnv, make_toy_dataset(num_trajectories=4, horizon=8), name="mock")

@@ -1,0 +1,104 @@
+"""Plots of the flow and the analyses (matplotlib, Agg backend, PNG files written atomically).
+
+Example:
+    >>> import tempfile, torch
+    >>> from pathlib import Path
+    >>> d = Path(tempfile.mkdtemp())
+    >>> stats = [{"step": 1, "score_mean": 1.0, "score_max": 2.0}, {"step": 2, "score_mean": 1.5, "score_max": 2.5}]
+    >>> plot_flow_curves(stats, d / "flow.png", before={"score_mean": 0.5, "score_max": 1.5}).exists()
+    True
+    >>> plot_histograms({"before": torch.randn(50), "after": torch.randn(50) + 1}, d / "h.png", xlabel="return").exists()
+    True
+"""
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+from typing import Mapping, Sequence
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import torch  # noqa: E402
+
+__all__ = ["plot_flow_curves", "plot_histograms", "save_figure"]
+
+
+def save_figure(fig, path: str | os.PathLike) -> Path:
+    """Save ``fig`` as PNG atomically (temp file + ``os.replace``) and close it."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".png")
+    os.close(fd)
+    try:
+        fig.savefig(tmp, dpi=110, bbox_inches="tight")
+        os.replace(tmp, path)
+    finally:
+        plt.close(fig)
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return path
+
+
+def plot_flow_curves(
+    stats: Sequence[Mapping[str, float]],
+    path: str | os.PathLike,
+    *,
+    before: Mapping[str, float] | None = None,
+    title: str = "Flow to better",
+) -> Path:
+    """Score (and true return, if present) of the current set per flow step; step 0 = ``before``.
+
+    Args:
+        stats: per-step dicts from :class:`~torchrl_ftb.flow.FlowToBetter` (``score_mean``,
+            ``score_max``, optional ``true_return_mean``/``true_return_max``, ``accept_rate``).
+        path: PNG file.
+        before: the same keys for the original top-k (plotted at step 0).
+    """
+    rows = ([{"step": 0, **before}] if before else []) + [dict(r) for r in stats]
+    panels = [("score", "score s_psi")]
+    if any("true_return_mean" in r for r in rows):
+        panels.append(("true_return", "true return"))
+    if any("accept_rate" in r for r in rows):
+        panels.append(("accept_rate", "accept rate"))
+    fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 3.4), squeeze=False)
+    for ax, (key, label) in zip(axes[0], panels):
+        for suffix, style in (("_mean", "o-"), ("_max", "s--"), ("", "o-")):
+            name = key + suffix
+            pts = [(r["step"], r[name]) for r in rows if name in r]
+            if pts and (suffix or key == "accept_rate"):
+                ax.plot(*zip(*pts), style, label=(suffix.strip("_") or key))
+        ax.set_xlabel("flow step")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+        if key != "accept_rate":
+            ax.legend()
+    fig.suptitle(title)
+    return save_figure(fig, path)
+
+
+def plot_histograms(
+    values: Mapping[str, torch.Tensor | Sequence[float]],
+    path: str | os.PathLike,
+    *,
+    xlabel: str,
+    title: str = "",
+    bins: int = 30,
+) -> Path:
+    """Overlaid histograms of several named samples (e.g. before vs after the flow)."""
+    fig, ax = plt.subplots(figsize=(5, 3.4))
+    arrays = {k: torch.as_tensor(v, dtype=torch.float64).flatten() for k, v in values.items()}
+    arrays = {k: v[torch.isfinite(v)] for k, v in arrays.items() if v.numel()}
+    if arrays:
+        lo = min(float(v.min()) for v in arrays.values())
+        hi = max(float(v.max()) for v in arrays.values())
+        edges = torch.linspace(lo, hi if hi > lo else lo + 1.0, bins + 1).tolist()
+        for name, v in arrays.items():
+            ax.hist(v.tolist(), bins=edges, alpha=0.55, label=f"{name} (mean {float(v.mean()):.3g})")
+        ax.legend()
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel("trajectories")
+    ax.set_title(title)
+    return save_figure(fig, path)
