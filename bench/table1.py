@@ -1,0 +1,321 @@
+"""Table-1 harness: methods x tasks x seeds, one resumable cell at a time, and its Markdown table.
+
+Run cells (each cell a subprocess of the recipe; a cell whose JSON exists is skipped):
+
+    python bench/table1.py --methods bc10,td3bc,iql,iql_rpsi,oprl,ftb \\
+        --tasks button-press-v3,drawer-open-v3 --seeds 0,1,2 --preset cpu --teacher return
+
+Write the table into BENCHMARKS.md between ``<!-- table1:start -->`` and ``<!-- table1:end -->``:
+
+    python bench/table1.py --write-md
+
+Each cell writes ``bench/results/table1/<method>__<task>__<teacher>__seed<k>.json`` with the
+command, config (overrides + the run's resolved config), git commit, machine, wall time and
+score (Meta-World: success rate; locomotion: D4RL-normalised score; toy: mean return).
+Baselines run ``recipes/baselines.py``; the ``ftb`` cells run ``recipes/ftb_offline.py`` with
+the same task / seed / teacher / preset and read the metrics JSON of its run directory.
+Run directories go under ``--runs-dir`` (default ``outputs/table1``), so a cell killed
+mid-training resumes from the recipe's own checkpoints when re-run.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import re
+import shlex
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any, Iterable
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS_DIR = ROOT / "bench" / "results" / "table1"
+START, END = "<!-- table1:start -->", "<!-- table1:end -->"
+
+#: column order and display names (the paper's names where it has the method)
+METHOD_NAMES = {
+    "bc": "BC",
+    "bc10": "10%BC",
+    "bc10_score": "10%BC (by s_ψ)",
+    "td3bc": "TD3+BC",
+    "iql": "IQL",
+    "iql_rpsi": "IQL+r_ψ",
+    "oprl": "OPRL",
+    "iql_zero": "IQL (r=0)",
+    "ftb": "FTB",
+}
+#: Paper, Table 1 (scripted teacher; 5 seeds; their offline-RL numbers are CORL's, on D4RL v2 /
+#: IPL's Meta-World v2 files). Keys are the paper's task names.
+PAPER_TABLE1 = {
+    "halfcheetah-medium-replay-v2": {"bc10": 23.6, "td3bc": 48.1, "iql": 48.3, "iql_rpsi": 36.0, "oprl": 38.3, "ftb": "38.4±1.3"},
+    "halfcheetah-medium-expert-v2": {"bc10": 90.1, "td3bc": 90.8, "iql": 94.7, "iql_rpsi": 85.6, "oprl": 82.9, "ftb": "85.2±0.7"},
+    "hopper-medium-replay-v2": {"bc10": 70.4, "td3bc": 64.4, "iql": 97.4, "iql_rpsi": 20.8, "oprl": 86.2, "ftb": "89.6±4.9"},
+    "hopper-medium-expert-v2": {"bc10": 111.2, "td3bc": 101.2, "iql": 107.4, "iql_rpsi": 88.5, "oprl": 95.7, "ftb": "111.1±2.0"},
+    "walker2d-medium-replay-v2": {"bc10": 54.4, "td3bc": 85.6, "iql": 82.2, "iql_rpsi": 75.7, "oprl": 64.0, "ftb": "79.1±1.4"},
+    "walker2d-medium-expert-v2": {"bc10": 108.7, "td3bc": 110.0, "iql": 111.7, "iql_rpsi": 110.0, "oprl": 109.6, "ftb": "109.3±0.3"},
+    "assembly-v2": {"bc10": 0.02, "td3bc": 0.00, "iql": 0.17, "iql_rpsi": 0.00, "oprl": 0.00, "ftb": "0.02±0.00"},
+    "button-press-v2": {"bc10": 0.70, "td3bc": 0.61, "iql": 0.70, "iql_rpsi": 0.23, "oprl": 0.57, "ftb": "1.00±0.00"},
+    "drawer-open-v2": {"bc10": 0.77, "td3bc": 1.00, "iql": 1.00, "iql_rpsi": 0.26, "oprl": 0.63, "ftb": "1.00±0.00"},
+    "plate-slide-v2": {"bc10": 0.43, "td3bc": 0.58, "iql": 0.62, "iql_rpsi": 0.00, "oprl": 0.44, "ftb": "0.51±0.08"},
+    "sweep-into-v2": {"bc10": 0.07, "td3bc": 0.63, "iql": 0.57, "iql_rpsi": 0.00, "oprl": 0.21, "ftb": "0.97±0.02"},
+}
+
+
+# ====================================================================
+# Cells
+# -----
+
+
+def paper_task(task: str) -> str | None:
+    """The paper's name of one of our tasks (``button-press-v3`` → ``button-press-v2``)."""
+    candidates = [re.sub(r"-v\d+$", "", task) + "-v2", task]
+    return next((c for c in candidates if c in PAPER_TABLE1), None)
+
+
+def task_overrides(task: str) -> list[str]:
+    """Hydra overrides selecting ``task`` (``hopper-medium-replay`` → env + dataset kind)."""
+    loco = re.fullmatch(r"(hopper|walker2d|halfcheetah)-(medium-replay|medium-expert|medium)(-v\d+)?", task)
+    if loco:  # the locomotion generator's option name (torchrl_ftb.datasets.locomotion)
+        return [f"env.name={loco.group(1)}", f"+dataset.options.kind={loco.group(2)}"]
+    return [f"env.name={task}"]
+
+
+def cell_path(results_dir: Path, method: str, task: str, teacher: str, seed: int) -> Path:
+    return results_dir / f"{method}__{task}__{teacher}__seed{seed}.json"
+
+
+def git_commit() -> str | None:
+    try:
+        out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, timeout=10)
+        return out.stdout.strip() or None if out.returncode == 0 else None
+    except (OSError, subprocess.SubprocessError):
+        return None
+
+
+def machine_info() -> dict[str, Any]:
+    import torch
+
+    return {"platform": platform.platform(), "processor": platform.processor(), "cpu_count": os.cpu_count(),
+            "python": sys.version.split()[0], "torch": torch.__version__,
+            "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None}
+
+
+def write_cell_json(path: Path, record: dict[str, Any]) -> None:
+    """Write a cell's JSON atomically (temp file + ``os.replace``)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as f:
+            json.dump(record, f, indent=2)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def _score_from_metrics(metrics: dict[str, Any]) -> tuple[str, float]:
+    """``(name, value)`` of the headline score in a recipe's metrics JSON."""
+    if "score" in metrics and isinstance(metrics["score"], (int, float)):
+        return metrics.get("score_name", "score"), float(metrics["score"])
+    evaluation = metrics.get("eval", metrics.get("evaluation", metrics))
+    for name in ("success_rate", "normalized_score", "return_mean"):
+        if isinstance(evaluation, dict) and isinstance(evaluation.get(name), (int, float)):
+            return name, float(evaluation[name])
+    raise ValueError(f"no score (score / success_rate / normalized_score / return_mean) in metrics: {sorted(metrics)}")
+
+
+def _find_metrics(run_dir: Path) -> Path:
+    for name in ("metrics.json", "final_metrics.json", "results.json"):
+        if (run_dir / name).exists():
+            return run_dir / name
+    found = sorted(run_dir.rglob("metrics*.json"))
+    if not found:
+        raise FileNotFoundError(f"{run_dir}: the recipe wrote no metrics JSON")
+    return found[-1]
+
+
+def run_cell(method: str, task: str, seed: int, *, teacher: str, preset: str, extra: list[str],
+             runs_dir: Path, results_dir: Path, threads: int = 1,
+             python: str = sys.executable) -> dict[str, Any] | None:
+    """Run one cell (skipped if its JSON exists); returns the record, or ``None`` on failure."""
+    out = cell_path(results_dir, method, task, teacher, seed)
+    if out.exists():
+        print(f"[table1] skip {out.name} (done)")
+        return json.loads(out.read_text())
+    run_dir = runs_dir / task / teacher / method / f"seed{seed}"
+    # both recipes: run_dir (hydra.run.dir follows it); resume=true continues a killed cell
+    common = [*task_overrides(task), f"seed={seed}", f"labels.teacher={teacher}", f"preset={preset}",
+              f"run_dir={run_dir}", "resume=true", "progress=false"]
+    if method == "ftb":
+        cmd = [python, str(ROOT / "recipes" / "ftb_offline.py"), *common, *extra]
+    else:
+        cmd = [python, str(ROOT / "recipes" / "baselines.py"), f"method={method}", *common, *extra]
+    print(f"[table1] run {out.name}: {shlex.join(cmd)}", flush=True)
+    start = time.perf_counter()
+    env = {**os.environ, "OMP_NUM_THREADS": str(threads)}
+    proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, env=env)
+    wall = time.perf_counter() - start
+    if proc.returncode != 0:
+        log = runs_dir / "failed" / f"{out.stem}.log"
+        log.parent.mkdir(parents=True, exist_ok=True)
+        log.write_text(proc.stdout + "\n--- stderr ---\n" + proc.stderr)
+        print(f"[table1] FAILED {out.name} (rc {proc.returncode}, {wall:.0f} s); log: {log}", flush=True)
+        return None
+    metrics_file = _find_metrics(run_dir)
+    metrics = json.loads(metrics_file.read_text())
+    score_name, score = _score_from_metrics(metrics)
+    config_file = run_dir / "config.yaml"
+    record = {
+        "method": method, "env": task, "seed": seed, "teacher": teacher, "preset": preset,
+        "score_name": score_name, "score": score, "wall_time_s": wall, "threads": threads,
+        "command": shlex.join(cmd), "config": {"overrides": cmd[2:],
+                                               "resolved": config_file.read_text() if config_file.exists() else None},
+        "git_commit": git_commit(), "machine": machine_info(), "run_dir": str(run_dir),
+        "metrics_file": str(metrics_file), "metrics": metrics,
+    }
+    write_cell_json(out, record)
+    print(f"[table1] done {out.name}: {score_name} = {score:.4f} ({wall:.0f} s)", flush=True)
+    return record
+
+
+# ====================================================================
+# Markdown
+# --------
+
+
+def load_cells(results_dir: Path) -> list[dict[str, Any]]:
+    cells = []
+    for path in sorted(Path(results_dir).glob("*.json")):
+        try:
+            record = json.loads(path.read_text())
+        except json.JSONDecodeError as err:
+            raise ValueError(f"{path}: corrupt cell JSON ({err})") from err
+        for key in ("method", "env", "seed", "score"):
+            if key not in record:
+                raise ValueError(f"{path}: cell JSON lacks {key!r}")
+        cells.append(record)
+    return cells
+
+
+def _mean_std(values: list[float]) -> tuple[float, float]:
+    mean = sum(values) / len(values)
+    return mean, math.sqrt(sum((v - mean) ** 2 for v in values) / len(values))
+
+
+def _fmt(value: float, *, big: bool) -> str:
+    return f"{value:.1f}" if big else f"{value:.2f}"
+
+
+def render_table(cells: list[dict[str, Any]]) -> str:
+    """The Markdown section: ours (mean ± std over seeds, n shown) beside the paper's numbers."""
+    teachers = sorted({c.get("teacher", "return") for c in cells}) or ["return"]
+    lines = [
+        "Success rate (Meta-World) / D4RL-normalised score (locomotion); **ours**: mean ± std over "
+        "seeds (population std), `n` = number of seeds; **[paper …]**: the paper's Table 1 "
+        "(scripted teacher, 5 seeds; its offline-RL columns are CORL's numbers), shown for reference only. "
+        "Our datasets are *generated here* (Meta-World v3 with the IPL recipe, our own locomotion "
+        "behaviour data), not D4RL's or IPL's files, and our tasks are v3 where the paper's are v2, "
+        "so the numbers are not directly comparable. Generated by `python bench/table1.py --write-md` "
+        "from `bench/results/table1/*.json`.",
+        "",
+    ]
+    if not cells:
+        return "\n".join(lines + ["_No cells run yet._"])
+    for teacher in teachers:
+        sub = [c for c in cells if c.get("teacher", "return") == teacher]
+        methods = [m for m in METHOD_NAMES if any(c["method"] == m for c in sub)]
+        tasks = sorted({c["env"] for c in sub})
+        presets = sorted({str(c.get("preset", "?")) for c in sub})
+        lines += [f"**Teacher: `{teacher}`** (preset: {', '.join(presets)})", "",
+                  "| task | " + " | ".join(METHOD_NAMES[m] for m in methods) + " |",
+                  "|---|" + "---|" * len(methods)]
+        for task in tasks:
+            ptask = paper_task(task)
+            row = [task + (f" (paper: {ptask})" if ptask and ptask != task else "")]
+            for m in methods:
+                vals = [float(c["score"]) for c in sub if c["method"] == m and c["env"] == task]
+                big = any(abs(v) > 2.0 for v in vals)
+                text = "—"
+                if vals:
+                    mean, std = _mean_std(vals)
+                    text = f"{_fmt(mean, big=big)} ± {_fmt(std, big=big)} (n={len(vals)})"
+                paper = PAPER_TABLE1.get(ptask, {}).get(m) if ptask else None
+                if paper is not None:
+                    text += f" [paper {paper if isinstance(paper, str) else _fmt(paper, big=big or paper > 2)}]"
+                row.append(text)
+            lines.append("| " + " | ".join(row) + " |")
+        lines.append("")
+    return "\n".join(lines).rstrip()
+
+
+def write_markdown(results_dir: Path, md_path: Path) -> None:
+    """Replace the marked section of ``md_path`` (created or appended if absent), atomically."""
+    section = f"{START}\n{render_table(load_cells(results_dir))}\n{END}"
+    text = md_path.read_text() if md_path.exists() else "# Benchmarks\n"
+    if START in text and END in text and text.index(START) < text.index(END):
+        text = text[: text.index(START)] + section + text[text.index(END) + len(END):]
+    else:
+        text = text.rstrip() + "\n\n## Table 1 (scripted teachers)\n\n" + section + "\n"
+    fd, tmp = tempfile.mkstemp(dir=md_path.parent, prefix=f".{md_path.name}.", suffix=".tmp")
+    with os.fdopen(fd, "w") as f:
+        f.write(text)
+    os.replace(tmp, md_path)
+    print(f"[table1] wrote {md_path}")
+
+
+# ====================================================================
+# CLI
+# ---
+
+
+def _csv(value: str) -> list[str]:
+    return [v.strip() for v in value.split(",") if v.strip()]
+
+
+def main(argv: Iterable[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--methods", type=_csv, default=["bc10", "td3bc", "iql", "iql_rpsi", "oprl", "ftb"])
+    parser.add_argument("--tasks", type=_csv, default=["button-press-v3"])
+    parser.add_argument("--seeds", type=_csv, default=["0"])
+    parser.add_argument("--teacher", default="return", help="scripted teacher: return (paper) | success")
+    parser.add_argument("--preset", default="cpu", help="recipe preset: cpu | paper")
+    parser.add_argument("--threads", type=int, default=1, help="OMP_NUM_THREADS (torch threads) per cell")
+    parser.add_argument("--extra", nargs="*", default=[], help="extra hydra overrides for every cell")
+    parser.add_argument("--results-dir", type=Path, default=RESULTS_DIR)
+    parser.add_argument("--runs-dir", type=Path, default=ROOT / "outputs" / "table1")
+    parser.add_argument("--write-md", action="store_true", help="only (re)write the BENCHMARKS.md section")
+    parser.add_argument("--md", type=Path, default=ROOT / "BENCHMARKS.md")
+    parser.add_argument("--dry-run", action="store_true", help="list the cells and whether they are done")
+    args = parser.parse_args(list(argv) if argv is not None else None)
+
+    if args.write_md:
+        write_markdown(args.results_dir, args.md)
+        return 0
+    unknown = [m for m in args.methods if m not in METHOD_NAMES]
+    if unknown:
+        parser.error(f"unknown methods {unknown}; choose from {list(METHOD_NAMES)}")
+    failures = 0
+    for task in args.tasks:
+        for seed in map(int, args.seeds):
+            for method in args.methods:
+                path = cell_path(args.results_dir, method, task, args.teacher, seed)
+                if args.dry_run:
+                    print(f"{'done' if path.exists() else 'todo'}  {path.name}")
+                    continue
+                if run_cell(method, task, seed, teacher=args.teacher, preset=args.preset, extra=args.extra,
+                            threads=args.threads,
+                            runs_dir=args.runs_dir, results_dir=args.results_dir) is None:
+                    failures += 1
+    if failures:
+        print(f"[table1] {failures} cell(s) failed (see {args.runs_dir / 'failed'})")
+    return 1 if failures else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

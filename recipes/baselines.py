@@ -1,0 +1,261 @@
+"""Table-1 baselines on FTB's data: one hydra recipe, ``method=`` switch (TorchRL sota style).
+
+    python recipes/baselines.py method=iql env.name=button-press-v3 seed=0
+    python recipes/baselines.py method=iql_rpsi labels.teacher=success
+    python recipes/baselines.py method=bc10 env.name=toy preset=cpu
+
+Stages: dataset (the generated, cached dataset FTB uses) → scripted labels (same seed →
+same pairs) → the method (``torchrl_ftb.baselines.run_baseline``) → evaluation with
+``torchrl_ftb.policy.evaluate_policy`` (FTB's protocol). The run directory
+(``run_dir``, as in recipes/ftb_offline.py) receives ``config.yaml`` (resolved), ``actor.pt`` (state dict,
+``torch.load(weights_only=True)``), ``metrics.json``, ``report.md`` and the logger's files.
+With ``resume=true`` (default) a run whose ``metrics.json`` exists is not redone.
+"""
+from __future__ import annotations
+
+import json
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import hydra
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from torchrl_ftb.baselines import METHODS, LABEL_METHODS, run_baseline
+from torchrl_ftb.data import atomic_torch_save, atomic_write_text
+from torchrl_ftb.data.labels import make_scripted_labels, make_teacher
+from torchrl_ftb.policy import evaluate_policy
+
+PRESETS = ("cpu", "paper")
+
+
+# ====================================================================
+# Environment and data
+# --------------------
+
+
+def env_kind(name: str) -> str:
+    """``"toy"``, ``"locomotion"`` or ``"metaworld"``; unknown names raise ``ValueError``."""
+    from torchrl_ftb.envs import LOCOMOTION_ENVS, metaworld_tasks
+
+    if name == "toy":
+        return "toy"
+    if name in LOCOMOTION_ENVS or name in LOCOMOTION_ENVS.values():
+        return "locomotion"
+    if name in metaworld_tasks():
+        return "metaworld"
+    raise ValueError(
+        f"env.name={name!r}: not 'toy', a locomotion env ({sorted(LOCOMOTION_ENVS)}) or a Meta-World v3 task"
+    )
+
+
+def make_env_factory(cfg: DictConfig, *, seed: int) -> Callable:
+    """Zero-argument factory of the evaluation env (torchrl ``EnvBase``)."""
+    name, kind = cfg.env.name, env_kind(cfg.env.name)
+    if kind == "toy":
+        from torchrl_ftb.testing import ToyLineEnv
+
+        def make():
+            env = ToyLineEnv(max_steps=int(cfg.dataset.horizon))
+            env.set_seed(seed)
+            return env
+
+        return make
+    if kind == "locomotion":
+        from torchrl_ftb.envs import make_locomotion_env
+
+        return lambda: make_locomotion_env(name, seed=seed)
+    from torchrl_ftb.envs import make_metaworld_env
+
+    return lambda: make_metaworld_env(name, seed=seed, max_episode_steps=int(cfg.env.max_episode_steps))
+
+
+def make_dataset(cfg: DictConfig):
+    """The trajectory batch FTB trains on (generated and cached by ``torchrl_ftb.datasets``)."""
+    name, kind = cfg.env.name, env_kind(cfg.env.name)
+    d = cfg.dataset
+    if kind == "toy":
+        from torchrl_ftb.testing import make_toy_dataset
+
+        td = make_toy_dataset(num_trajectories=int(d.num_trajectories), horizon=int(d.horizon), seed=int(d.seed))
+        return td, {"env": "toy", "num_trajectories": int(d.num_trajectories), "seed": int(d.seed)}
+    if kind == "metaworld":
+        from torchrl_ftb.datasets import make_metaworld_dataset
+
+        return make_metaworld_dataset(
+            name, episodes_per_group=int(d.episodes_per_group), noise=float(d.noise), seed=int(d.seed),
+            max_steps=int(cfg.env.max_episode_steps), cache_dir=d.cache_dir, progress=bool(cfg.progress),
+            num_workers=int(d.num_workers),
+        )
+    from torchrl_ftb.datasets import get_dataset_generator
+
+    return get_dataset_generator(name).fn(name, **OmegaConf.to_container(d.get("options", {}) or {}))
+
+
+def make_labels(cfg: DictConfig, trajs):
+    """Scripted labels exactly as FTB draws them (teacher, pairs, seed)."""
+    lab = cfg.labels
+    teacher = make_teacher(str(lab.teacher), discount=float(lab.discount))
+    labels = make_scripted_labels(trajs, num_pairs=int(lab.num_pairs), teacher=teacher, seed=int(lab.seed))
+    return labels, teacher
+
+
+def make_logger(cfg: DictConfig, run_dir: Path):
+    """A torchrl logger writing under ``run_dir/logs`` (``None`` when ``logger.backend`` is empty)."""
+    from torchrl.record.loggers import get_logger
+
+    if not cfg.logger.backend:
+        return None
+    wandb_kwargs = {"project": cfg.logger.project_name, "mode": cfg.logger.mode,
+                    "config": OmegaConf.to_container(cfg, resolve=True)}
+    return get_logger(cfg.logger.backend, logger_name=str(run_dir / "logs"),
+                      experiment_name=f"{cfg.method}_{cfg.env.name}_seed{cfg.seed}", wandb_kwargs=wandb_kwargs)
+
+
+# ====================================================================
+# Bookkeeping
+# -----------
+
+
+def git_commit() -> str | None:
+    """``git rev-parse HEAD`` of the repository, or ``None``."""
+    try:
+        out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(__file__).resolve().parent,
+                             capture_output=True, text=True, timeout=10)
+        return out.stdout.strip() or None if out.returncode == 0 else None
+    except (OSError, subprocess.SubprocessError):
+        return None
+
+
+def machine_info() -> dict[str, Any]:
+    return {"platform": platform.platform(), "processor": platform.processor(), "python": sys.version.split()[0],
+            "torch": torch.__version__, "threads": torch.get_num_threads(),
+            "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None}
+
+
+def check_config(cfg: DictConfig) -> None:
+    if cfg.method not in METHODS:
+        raise ValueError(f"method={cfg.method!r}: unknown; choose from {sorted(METHODS)}")
+    if cfg.preset not in PRESETS:
+        raise ValueError(f"preset={cfg.preset!r}: unknown; choose from {list(PRESETS)}")
+    env_kind(cfg.env.name)
+
+
+def _report(metrics: dict[str, Any]) -> str:
+    ev = metrics["eval"]
+    lines = [
+        f"# Baseline `{metrics['method']}` on `{metrics['env']}` (seed {metrics['seed']})",
+        "",
+        f"{METHODS[metrics['method']]}; labels: {metrics['labels']['num_pairs']} pairs, "
+        f"teacher `{metrics['labels']['teacher']}`" + ("" if metrics["uses_labels"] else " (not used by this method)"),
+        "",
+        "| metric | value |", "|---|---|",
+        f"| score ({metrics['score_name']}) | {metrics['score']:.4f} |",
+        f"| return (mean ± std) | {ev['return_mean']:.2f} ± {ev['return_std']:.2f} |",
+        f"| episode length | {ev['length_mean']:.1f} |",
+        f"| evaluation episodes | {ev['num_episodes']} |",
+        f"| wall time | {metrics['wall_time_s']:.0f} s |",
+    ]
+    return "\n".join(lines) + "\n"
+
+
+# ====================================================================
+# Main
+# ----
+
+
+def run(cfg: DictConfig) -> dict[str, Any]:
+    """Run one baseline cell in ``cfg.run_dir``; returns (and writes) the metrics dict."""
+    check_config(cfg)
+    run_dir = Path(cfg.run_dir).expanduser().resolve()
+    run_dir.mkdir(parents=True, exist_ok=True)
+    metrics_file = run_dir / "metrics.json"
+    if cfg.resume and metrics_file.exists():
+        print(f"[baselines] {metrics_file} exists (resume=true): nothing to do")
+        return json.loads(metrics_file.read_text())
+    start = time.perf_counter()
+    if int(cfg.num_threads) > 0:
+        torch.set_num_threads(int(cfg.num_threads))
+    torch.manual_seed(int(cfg.seed))
+    atomic_write_text(run_dir / "config.yaml", OmegaConf.to_yaml(cfg, resolve=True))
+    device = torch.device(cfg.device)
+    logger = make_logger(cfg, run_dir)
+
+    trajs, meta = make_dataset(cfg)
+    labels, teacher = make_labels(cfg, trajs)
+    result = run_baseline(
+        cfg.method, trajs, labels=labels, seed=int(cfg.seed),
+        network=OmegaConf.to_container(cfg.network, resolve=True),
+        bc=OmegaConf.to_container(cfg.bc, resolve=True),
+        iql=OmegaConf.to_container(cfg.iql, resolve=True),
+        td3bc=OmegaConf.to_container(cfg.td3bc, resolve=True),
+        top_fraction=float(cfg.bc10.top_fraction), teacher=teacher,
+        reward_normalization=str(cfg.reward_normalization),
+        reward_model={k: cfg.score_model[k] for k in ("num_cells", "num_layers", "gamma")},
+        reward_training={k: cfg.score_model[k] for k in ("steps", "batch_size", "lr", "eval_fraction")},
+        oprl_members=int(cfg.oprl.members), logger=logger, progress=bool(cfg.progress), device=device,
+    )
+    atomic_torch_save({"method": cfg.method, "actor": result.actor.state_dict()}, run_dir / "actor.pt")
+
+    kind = env_kind(cfg.env.name)
+    normalized = None
+    if kind == "locomotion":
+        from torchrl_ftb.envs import d4rl_normalized_score
+
+        normalized = lambda r: float(d4rl_normalized_score(cfg.env.name, r))  # noqa: E731
+    ev = evaluate_policy(  # exactly FTB's evaluation: same env seed, episodes, stop rule
+        make_env_factory(cfg, seed=int(cfg.eval.seed)), result.actor,
+        num_episodes=int(cfg.eval.num_episodes), seed=int(cfg.eval.seed),
+        max_steps=int(cfg.eval.max_steps), num_envs=int(cfg.eval.num_envs),
+        stop_on_success=bool(cfg.eval.stop_on_success) and kind == "metaworld",
+        normalized_score_fn=normalized, progress=bool(cfg.progress),
+    )
+    if kind == "metaworld":
+        score_name, score = "success_rate", ev["success_rate"]
+    elif kind == "locomotion":
+        score_name, score = "d4rl_normalized_score", ev["normalized_score"]
+    else:
+        score_name, score = "return_mean", ev["return_mean"]
+    metrics = {
+        "method": cfg.method, "description": METHODS[cfg.method], "env": cfg.env.name, "seed": int(cfg.seed),
+        "preset": cfg.preset, "score_name": score_name, "score": float(score), "eval": ev,
+        "uses_labels": cfg.method in LABEL_METHODS,
+        "labels": {"num_pairs": int(labels.batch_size[0]), "teacher": teacher.name, "seed": int(cfg.labels.seed)},
+        "dataset": {k: v for k, v in (meta or {}).items() if isinstance(v, (int, float, str, bool))},
+        "train": _jsonable(result.info),
+        "wall_time_s": time.perf_counter() - start,
+        "command": " ".join(sys.argv), "git_commit": git_commit(), "machine": machine_info(),
+    }
+    if logger is not None:
+        for k in ("score", "wall_time_s"):
+            logger.log_scalar(f"final/{k}", float(metrics[k]), step=0)
+    atomic_write_text(run_dir / "report.md", _report(metrics))
+    atomic_write_text(metrics_file, json.dumps(metrics, indent=2))  # last: marks the run finished
+    print(f"[baselines] {cfg.method} on {cfg.env.name} seed {cfg.seed}: {score_name} = {score:.4f} "
+          f"({metrics['wall_time_s']:.0f} s) -> {run_dir}")
+    return metrics
+
+
+def _jsonable(obj):
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, torch.Tensor):
+        return obj.tolist()
+    if isinstance(obj, (int, float, str, bool)) or obj is None:
+        return obj
+    return str(obj)
+
+
+@hydra.main(config_path="config", config_name="baselines", version_base="1.3")
+def main(cfg: DictConfig) -> None:
+    run(cfg)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,217 @@
+"""Tests of torchrl_ftb.baselines, recipes/baselines.py and bench/table1.py (fast, CPU)."""
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from tensordict import TensorDict
+from tensordict.nn import TensorDictModule
+from torchrl.envs.transforms import ModuleTransform, RewardScaling
+
+from torchrl_ftb.baselines import (
+    METHODS,
+    make_iql_model,
+    make_offline_buffer,
+    make_reward_transforms,
+    reward_scale,
+    run_baseline,
+    select_top_trajectories,
+    zero_reward_module,
+)
+from torchrl_ftb.data import pad_trajectories, trajectories_to_flat
+from torchrl_ftb.data.labels import ReturnTeacher, make_scripted_labels
+from torchrl_ftb.policy import evaluate_policy
+from torchrl_ftb.testing import MetaWorldMockEnv, ToyLineEnv, make_toy_dataset
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY = dict(
+    network={"hidden": [16, 16]},
+    bc={"steps": 3, "batch_size": 32},
+    iql={"steps": 3, "batch_size": 32},
+    td3bc={"steps": 3, "batch_size": 32},
+    reward_model={"num_cells": 16},
+    reward_training={"steps": 3},
+    oprl_members=2,
+    progress=False,
+)
+
+
+def _load(path: Path, name: str):
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    """Small networks on a shared 2-core machine: 1 thread is ~10x faster than oversubscribed 2."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def mock_data():
+    """Meta-World-shaped data: random-action episodes of the mock env, with scripted labels."""
+    env = MetaWorldMockEnv(max_steps=12)
+    env.set_seed(0)
+    torch.manual_seed(0)
+    episodes = [env.rollout(12) for _ in range(10)]
+    trajs = pad_trajectories(episodes)
+    labels = make_scripted_labels(trajs, num_pairs=8, teacher=ReturnTeacher(), seed=0)
+    return trajs, labels
+
+
+# --------------------------------------------------------------------- data pieces
+def test_reward_relabel_transform_applies_module_at_sample_time():
+    trajs = make_toy_dataset(num_trajectories=8, horizon=8, seed=0)
+
+    class Linear(torch.nn.Module):
+        def forward(self, observation, action):
+            return observation[..., :1] * 2.0 + action[..., :1]
+
+    module = TensorDictModule(Linear(), in_keys=["observation", "action"], out_keys=[("next", "reward")])
+    transforms = make_reward_transforms(trajs, reward_module=module, normalization="standardize")
+    assert isinstance(transforms[0], ModuleTransform) and isinstance(transforms[1], RewardScaling)
+    rb = make_offline_buffer(trajs, batch_size=64, seed=0, transforms=transforms)
+    batch = rb.sample()
+    expected_raw = batch["observation"][..., :1] * 2.0 + batch["action"][..., :1]
+    # the relabelled reward is an affine map of the module's output, standardised over the dataset
+    flat = trajectories_to_flat(trajs)
+    all_raw = flat["observation"][..., :1] * 2.0 + flat["action"][..., :1]
+    mean, std = all_raw.mean(), all_raw.std(unbiased=False)
+    torch.testing.assert_close(batch["next", "reward"], (expected_raw - mean) / std, atol=1e-4, rtol=1e-4)
+    assert not batch["next", "reward"].requires_grad
+    # the stored data keeps its true reward
+    stored = rb.storage.get(torch.arange(5))
+    torch.testing.assert_close(stored["next", "reward"], flat[:5]["next", "reward"])
+
+
+def test_zero_reward_and_true_reward_scaling():
+    trajs = make_toy_dataset(num_trajectories=8, horizon=8, seed=1)
+    rb = make_offline_buffer(trajs, batch_size=16, seed=0,
+                             transforms=make_reward_transforms(trajs, reward_module=zero_reward_module(),
+                                                               normalization="return_range"))
+    assert float(rb.sample()["next", "reward"].abs().sum()) == 0.0  # constant reward: no division by 0
+    loc, scale = reward_scale(trajs["next", "reward"], trajs["mask"], mode="return_range", target_range=1000.0)
+    returns = (trajs["next", "reward"].squeeze(-1) * trajs["mask"]).sum(-1)
+    assert loc == 0.0 and scale == pytest.approx(1000.0 / float(returns.max() - returns.min()), rel=1e-5)
+    with pytest.raises(ValueError, match="normalization"):
+        reward_scale(trajs["next", "reward"], trajs["mask"], mode="minmax")
+
+
+def test_select_top_trajectories():
+    trajs = make_toy_dataset(num_trajectories=20, horizon=4, seed=0)
+    values = torch.randn(20)
+    top, idx = select_top_trajectories(trajs, values, fraction=0.1)
+    assert top.batch_size[0] == 2 and set(idx.tolist()) == set(values.topk(2).indices.tolist())
+    torch.testing.assert_close(top["observation"], trajs["observation"][idx])
+    with pytest.raises(ValueError, match="fraction"):
+        select_top_trajectories(trajs, values, fraction=0.0)
+    with pytest.raises(ValueError, match="values"):
+        select_top_trajectories(trajs, values[:5])
+
+
+# --------------------------------------------------------------------- methods: smoke
+@pytest.mark.parametrize("method", sorted(METHODS))
+def test_every_method_runs_on_metaworld_shaped_data(method, mock_data):
+    trajs, labels = mock_data
+    result = run_baseline(method, trajs, labels=labels, seed=0, **TINY)
+    assert result.method == method
+    out = evaluate_policy(lambda: MetaWorldMockEnv(max_steps=5), result.actor, num_episodes=1, seed=0,
+                          max_steps=5, stop_on_success=True)
+    assert out["num_episodes"] == 1 and 0.0 <= out["success_rate"] <= 1.0
+    actions = result.actor(TensorDict({"observation": trajs["observation"][0]}, [12]))["action"]
+    assert actions.shape == (12, 4) and bool((actions.abs() <= 1).all()) and bool(torch.isfinite(actions).all())
+    if method in ("iql_rpsi", "oprl", "bc10_score"):
+        assert result.reward_model is not None and result.reward_model.num_members == (2 if method == "oprl" else 1)
+
+
+def test_run_baseline_errors(mock_data):
+    trajs, labels = mock_data
+    with pytest.raises(ValueError, match="unknown baseline"):
+        run_baseline("cql", trajs, **TINY)
+    with pytest.raises(ValueError, match="labels"):
+        run_baseline("iql_rpsi", trajs, labels=None, **TINY)
+    with pytest.raises(ValueError, match="true reward"):
+        run_baseline("iql", trajs.exclude(("next", "reward")), **TINY)
+    with pytest.raises(ValueError, match="steps"):
+        run_baseline("iql", trajs, iql={"batch_size": 8}, progress=False)
+
+
+# --------------------------------------------------------------------- behaviour
+def test_iql_with_true_reward_beats_bc_on_mixed_quality_toy_data():
+    """Mixed-quality data (mean return ≈ 5 of an optimum of 32): BC imitates the average
+    behaviour; IQL's advantage weighting must pick the good actions."""
+    torch.manual_seed(0)
+    horizon = 32
+    trajs = make_toy_dataset(num_trajectories=128, horizon=horizon, seed=0)
+    common = dict(seed=0, network={"hidden": [64, 64]}, progress=False)
+    bc = run_baseline("bc", trajs, bc={"steps": 300, "batch_size": 256, "lr": 1e-3, "weight_decay": 0.0}, **common)
+    iql = run_baseline("iql", trajs, iql={"steps": 250, "batch_size": 256, "lr": 1e-3},
+                       reward_normalization="none", **common)
+
+    def returns(actor):
+        return evaluate_policy(lambda: ToyLineEnv(max_steps=horizon), actor, num_episodes=4, seed=123,
+                               max_steps=horizon)["return_mean"]
+
+    data_mean = float((trajs["next", "reward"].squeeze(-1) * trajs["mask"]).sum(-1).mean())
+    r_bc, r_iql = returns(bc.actor), returns(iql.actor)
+    assert r_iql > r_bc + 10.0, (r_iql, r_bc)
+    assert r_iql > data_mean + 10.0 and r_iql > 0.6 * horizon, (r_iql, data_mean)
+
+
+def test_iql_model_is_deterministic_in_eval_mode():
+    model = make_iql_model(3, 2, hidden=(8,))
+    td = TensorDict({"observation": torch.randn(6, 3)}, [6])
+    evaluate = lambda: evaluate_policy(lambda: ToyLineEnv(max_steps=6), model[0], num_episodes=1,  # noqa: E731
+                                       seed=0, max_steps=6)["return_mean"]
+    assert evaluate() == evaluate()
+    assert model[0](td.clone())["action"].shape == (6, 2)
+
+
+# --------------------------------------------------------------------- recipe + harness
+def test_recipe_runs_resumes_and_checkpoint_loads(tmp_path):
+    from hydra import compose, initialize_config_dir
+
+    recipe = _load(ROOT / "recipes" / "baselines.py", "recipe_baselines")
+    overrides = ["env.name=toy", "method=bc10_score", "dataset.num_trajectories=24", "dataset.horizon=8",
+                 "labels.num_pairs=6", "bc.steps=5", "score_model.steps=3", "score_model.num_cells=8",
+                 "bc.hidden=[8]", "eval.num_episodes=2", "progress=false", "logger.backend=csv"]
+    with initialize_config_dir(config_dir=str(ROOT / "recipes" / "config"), version_base="1.3"):
+        cfg = compose(config_name="baselines", overrides=overrides + [f"run_dir={tmp_path}"])
+        bad = compose(config_name="baselines", overrides=overrides + ["method=cql", f"run_dir={tmp_path / 'bad'}"])
+    metrics = recipe.run(cfg)
+    saved = json.loads((tmp_path / "metrics.json").read_text())
+    assert saved["score"] == metrics["score"] and saved["uses_labels"] and saved["labels"]["num_pairs"] == 6
+    assert saved["train"]["ranked_by"] == "learned score s_psi"
+    ckpt = torch.load(tmp_path / "actor.pt", weights_only=True)
+    assert ckpt["method"] == "bc10_score" and any(k.endswith("normalizer.loc") for k in ckpt["actor"])
+    mtime = (tmp_path / "metrics.json").stat().st_mtime_ns
+    assert recipe.run(cfg)["score"] == metrics["score"]  # resume: not redone
+    assert (tmp_path / "metrics.json").stat().st_mtime_ns == mtime
+    with pytest.raises(ValueError, match="unknown"):
+        recipe.run(bad)
+
+
+def test_table1_markdown_between_markers(tmp_path):
+    table1 = _load(ROOT / "bench" / "table1.py", "bench_table1")
+    cells = tmp_path / "cells"
+    for seed, score in ((0, 0.5), (1, 0.7)):
+        table1.write_cell_json(cells / f"iql__button-press-v3__seed{seed}.json",
+                               {"method": "iql", "env": "button-press-v3", "seed": seed, "score": score,
+                                "score_name": "success_rate", "teacher": "return"})
+    md = tmp_path / "BENCHMARKS.md"
+    md.write_text("# Benchmarks\n\nintro\n\n<!-- table1:start -->\nold\n<!-- table1:end -->\n\ntail\n")
+    table1.write_markdown(cells, md)
+    text = md.read_text()
+    assert text.startswith("# Benchmarks\n\nintro\n") and text.rstrip().endswith("tail") and "old" not in text
+    section = text.split("<!-- table1:start -->")[1].split("<!-- table1:end -->")[0]
+    assert "0.60 ± 0.10 (n=2)" in section and "paper" in section.lower() and "0.70" in section  # paper IQL 0.70
