@@ -24,12 +24,11 @@ from pathlib import Path
 import torch
 from tensordict import TensorDict
 
-from diffusion_speed import _commit, _machine  # sibling script (bench/ is on sys.path when run)
-from torchrl_ftb.data.trajectories import atomic_write_text
 from torchrl_ftb.datasets.metaworld import make_metaworld_dataset
 from torchrl_ftb.diffusion import DiffusionSampler, get_preset, make_diffuser, save_diffuser, train_diffuser
 from torchrl_ftb.envs.metaworld import metaworld_true_reward
 from torchrl_ftb.preference import make_block_pair_buffer, make_blocks
+from torchrl_ftb.provenance import git_commit, machine_info, write_json
 
 
 def main() -> None:
@@ -100,12 +99,12 @@ def main() -> None:
         print(json.dumps(res), flush=True)
         results.append(res)
     payload = {"benchmark": "diffusion_quality", "command": " ".join(sys.argv), "config": vars(args),
-               "preset": preset, "dataset_meta": meta, "num_blocks": n_blocks, "git_commit": _commit(),
-               "machine": _machine(), "train": {k: v for k, v in train.items() if k != "losses"},
+               "preset": preset, "dataset_meta": meta, "num_blocks": n_blocks, "git_commit": git_commit(),
+               "machine": machine_info(), "train": {k: v for k, v in train.items() if k != "losses"},
                "train_wall_s": train_wall, "loss_last100": sum(train["losses"][-100:]) / max(len(train["losses"][-100:]), 1),
                "results": results, "created": time.strftime("%Y-%m-%dT%H:%M:%S")}
     path = Path(__file__).resolve().parent / "results" / f"diffusion_quality_{args.task}.json"
-    atomic_write_text(path, json.dumps(payload, indent=2, default=str))
+    write_json(path, payload)
     print(f"wrote {path}")
 
 

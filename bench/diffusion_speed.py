@@ -17,9 +17,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -27,27 +24,8 @@ from pathlib import Path
 import torch
 from tensordict import TensorDict
 
-from torchrl_ftb.data.trajectories import atomic_write_text
 from torchrl_ftb.diffusion import DiffusionSampler, get_preset, make_diffuser, train_diffuser
-
-
-def _commit() -> str | None:
-    try:
-        return subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=True).stdout.strip()
-    except Exception:  # noqa: BLE001 - commit is optional metadata
-        return None
-
-
-def _machine() -> dict:
-    info = {"platform": platform.platform(), "python": sys.version.split()[0], "torch": torch.__version__,
-            "cpu_count": os.cpu_count(), "threads": torch.get_num_threads(),
-            "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None}
-    try:
-        info["cpu"] = next(l.split(":", 1)[1].strip() for l in open("/proc/cpuinfo") if l.startswith("model name"))
-        info["loadavg_at_start"] = os.getloadavg()
-    except Exception:  # noqa: BLE001
-        pass
-    return info
+from torchrl_ftb.provenance import git_commit, machine_info, write_json
 
 
 def _random_trajectories(n: int, horizon: int, obs_dim: int, action_dim: int, seed: int) -> TensorDict:
@@ -129,10 +107,10 @@ def main() -> None:
             results.append(res)
     tag = args.tag or f"H{args.horizon}_{args.device}"
     payload = {"benchmark": "diffusion_speed", "command": " ".join(sys.argv), "config": vars(args),
-               "git_commit": _commit(), "machine": _machine(), "results": results,
+               "git_commit": git_commit(), "machine": machine_info(), "results": results,
                "created": time.strftime("%Y-%m-%dT%H:%M:%S")}
     path = Path(__file__).resolve().parent / "results" / f"diffusion_speed_{tag}.json"
-    atomic_write_text(path, json.dumps(payload, indent=2))
+    write_json(path, payload)
     print(f"wrote {path}")
 
 

@@ -7,15 +7,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
-import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import torch
+
+from torchrl_ftb.provenance import run_record, write_json
 
 
 def main() -> None:
@@ -49,16 +47,8 @@ def main() -> None:
             "next_observation": metaworld_reward_error(args.task, td[idx]),
             "shifted_observation": metaworld_reward_error(args.task, td[idx], use_next_observation=False),
         }
-    try:
-        commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip() or None
-    except OSError:
-        commit = None
     out = {
-        "command": " ".join([sys.executable, *sys.argv]),
-        "config": vars(args),
-        "git_commit": commit,
-        "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count(),
-                    "load_avg_1m": os.getloadavg()[0], "torch": torch.__version__},
+        **run_record(config=vars(args)),
         "results": {
             "generation_seconds": round(gen_s, 2),
             "load_seconds": round(load_s, 3),
@@ -68,11 +58,7 @@ def main() -> None:
             "reward_error": errors,
         },
     }
-    path = Path(__file__).parent / "results" / f"metaworld_dataset-{args.task}.json"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(out, indent=2))
-    os.replace(tmp, path)
+    write_json(Path(__file__).parent / "results" / f"metaworld_dataset-{args.task}.json", out)
     print(json.dumps(out["results"], indent=2))
 
 

@@ -17,10 +17,6 @@ config, git commit, machine, results), rewritten after every task so partial res
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import platform
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -32,20 +28,6 @@ sys.path.insert(0, str(ROOT))
 
 TASKS = ("button-press-v3", "plate-slide-v3", "drawer-open-v3", "sweep-into-v3", "assembly-v3")  # cheapest first
 PT_DIR = Path("/work/shared/data/pt-human-labels/hopper-medium-expert-v2")
-
-
-def _commit() -> str | None:
-    try:
-        return subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True,
-                              check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return None
-
-
-def _machine() -> dict:
-    return {"platform": platform.platform(), "processor": platform.processor(), "cpu_count": os.cpu_count(),
-            "torch": torch.__version__, "torch_threads": torch.get_num_threads(),
-            "load_avg_1m": os.getloadavg()[0] if hasattr(os, "getloadavg") else None}
 
 
 def _summary(values: list[float]) -> dict:
@@ -173,17 +155,17 @@ def main() -> None:
     parser.add_argument("--out-dir", default=str(ROOT / "bench" / "results"))
     args = parser.parse_args()
     torch.set_num_threads(1)
-    from torchrl_ftb.data import atomic_write_text
+    from torchrl_ftb.provenance import git_commit, machine_info, write_json
 
     for part in args.part:
         out = Path(args.out_dir) / {"a": "score_model_metaworld.json", "b": "score_model_hopper.json"}[part]
         record = {"benchmark": f"score_model/{part}", "command": " ".join([sys.executable, *sys.argv]),
-                  "config": dict(vars(args)), "commit": _commit(), "machine": _machine(),
+                  "config": dict(vars(args)), "commit": git_commit(), "machine": machine_info(),
                   "started": time.strftime("%Y-%m-%dT%H:%M:%S"), "results": {}}
 
         def write(record=record, out=out) -> None:
             record["finished"] = time.strftime("%Y-%m-%dT%H:%M:%S")
-            atomic_write_text(out, json.dumps(record, indent=2, default=str))
+            write_json(out, record)
 
         {"a": part_a, "b": part_b}[part](args, record, write)
         print(f"wrote {out}")

@@ -14,8 +14,6 @@ With ``resume=true`` (default) a run whose ``metrics.json`` exists is not redone
 from __future__ import annotations
 
 import json
-import platform
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -29,6 +27,7 @@ from torchrl_ftb.baselines import METHODS, LABEL_METHODS, run_baseline
 from torchrl_ftb.data import atomic_torch_save, atomic_write_text
 from torchrl_ftb.data.labels import make_scripted_labels, make_teacher
 from torchrl_ftb.policy import evaluate_policy
+from torchrl_ftb.provenance import git_commit, machine_info, make_logger
 
 PRESETS = ("cpu", "paper")
 
@@ -104,37 +103,9 @@ def make_labels(cfg: DictConfig, trajs):
     return labels, teacher
 
 
-def make_logger(cfg: DictConfig, run_dir: Path):
-    """A torchrl logger writing under ``run_dir/logs`` (``None`` when ``logger.backend`` is empty)."""
-    from torchrl.record.loggers import get_logger
-
-    if not cfg.logger.backend:
-        return None
-    wandb_kwargs = {"project": cfg.logger.project_name, "mode": cfg.logger.mode,
-                    "config": OmegaConf.to_container(cfg, resolve=True)}
-    return get_logger(cfg.logger.backend, logger_name=str(run_dir / "logs"),
-                      experiment_name=f"{cfg.method}_{cfg.env.name}_seed{cfg.seed}", wandb_kwargs=wandb_kwargs)
-
-
 # ====================================================================
 # Bookkeeping
 # -----------
-
-
-def git_commit() -> str | None:
-    """``git rev-parse HEAD`` of the repository, or ``None``."""
-    try:
-        out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(__file__).resolve().parent,
-                             capture_output=True, text=True, timeout=10)
-        return out.stdout.strip() or None if out.returncode == 0 else None
-    except (OSError, subprocess.SubprocessError):
-        return None
-
-
-def machine_info() -> dict[str, Any]:
-    return {"platform": platform.platform(), "processor": platform.processor(), "python": sys.version.split()[0],
-            "torch": torch.__version__, "threads": torch.get_num_threads(),
-            "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None}
 
 
 def check_config(cfg: DictConfig) -> None:
@@ -183,7 +154,10 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     torch.manual_seed(int(cfg.seed))
     atomic_write_text(run_dir / "config.yaml", OmegaConf.to_yaml(cfg, resolve=True))
     device = torch.device(cfg.device)
-    logger = make_logger(cfg, run_dir)
+    logger = make_logger(cfg.logger.backend, log_dir=run_dir / "logs",
+                         experiment_name=f"{cfg.method}_{cfg.env.name}_seed{cfg.seed}",
+                         project=cfg.logger.project_name, mode=cfg.logger.mode,
+                         config=OmegaConf.to_container(cfg, resolve=True))
 
     trajs, meta = make_dataset(cfg)
     labels, teacher = make_labels(cfg, trajs)

@@ -20,9 +20,7 @@ from __future__ import annotations
 
 import json
 import math
-import platform
 import shutil
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -60,6 +58,7 @@ from torchrl_ftb.preference import (
     score_trajectories,
     train_score_model,
 )
+from torchrl_ftb.provenance import git_commit, machine_info, make_logger, write_json
 
 STAGES = ("dataset", "labels", "score_model", "blocks", "diffuser", "flow", "bc", "eval")
 # config entries that may change between a killed run and its resume
@@ -143,37 +142,9 @@ def check_env_matches(make_env: Callable, trajs: TensorDict, *, name: str) -> tu
     return obs_dim, act_dim
 
 
-def make_logger(cfg: DictConfig, run_dir: Path):
-    """A torchrl logger under ``run_dir/logs`` (``None`` when ``logger.backend`` is empty)."""
-    from torchrl.record.loggers import get_logger
-
-    if not cfg.logger.backend:
-        return None
-    wandb_kwargs = {"project": cfg.logger.project_name, "mode": cfg.logger.mode,
-                    "config": OmegaConf.to_container(cfg, resolve=True)}
-    return get_logger(cfg.logger.backend, logger_name=str(run_dir / "logs"),
-                      experiment_name=f"ftb_{cfg.env.name}_seed{cfg.seed}", wandb_kwargs=wandb_kwargs)
-
-
 # ====================================================================
 # Run directory bookkeeping
 # -------------------------
-
-
-def git_commit() -> str | None:
-    """``git rev-parse HEAD`` of the repository, or ``None``."""
-    try:
-        out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(__file__).resolve().parent,
-                             capture_output=True, text=True, timeout=10)
-        return (out.stdout.strip() or None) if out.returncode == 0 else None
-    except (OSError, subprocess.SubprocessError):
-        return None
-
-
-def machine_info() -> dict[str, Any]:
-    return {"platform": platform.platform(), "processor": platform.processor(), "python": sys.version.split()[0],
-            "torch": torch.__version__, "threads": torch.get_num_threads(),
-            "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None}
 
 
 def _comparable(cfg: DictConfig) -> dict:
@@ -230,15 +201,7 @@ class RunDir:
 
     def mark(self, stage: str, **summary: Any) -> None:
         self.stages[stage] = {"done": True, **summary}
-        atomic_write_text(self.stages_file, json.dumps(self.stages, indent=2, default=_json_default))
-
-
-def _json_default(x: Any) -> Any:
-    if isinstance(x, torch.Tensor):
-        return x.tolist()
-    if isinstance(x, Path):
-        return str(x)
-    return str(x)
+        write_json(self.stages_file, self.stages)
 
 
 def _load_ckpt(path: Path, kind: str) -> dict:
@@ -482,7 +445,10 @@ def run(cfg: DictConfig) -> dict:
     torch.manual_seed(int(cfg.seed))
     device = torch.device(cfg.device)
     run_dir = RunDir(cfg)
-    logger = make_logger(cfg, run_dir.path)
+    print(f"run dir: {run_dir.path}  (continue a killed run with resume=true run_dir={run_dir.path})")
+    logger = make_logger(cfg.logger.backend, log_dir=run_dir.path / "logs",
+                         experiment_name=f"ftb_{cfg.env.name}_seed{cfg.seed}", project=cfg.logger.project_name,
+                         mode=cfg.logger.mode, config=OmegaConf.to_container(cfg, resolve=True))
     progress = bool(cfg.progress)
     timings: dict[str, float] = {}
 
@@ -585,7 +551,7 @@ def run(cfg: DictConfig) -> dict:
         "git_commit": git_commit(), "machine": machine_info(),
         "command": " ".join(sys.argv), "run_dir": str(run_dir.path),
     }
-    atomic_write_text(run_dir.path / "metrics.json", json.dumps(metrics, indent=2, default=_json_default))
+    write_json(run_dir.path / "metrics.json", metrics)
     write_report(run_dir, metrics, flow["stats"])
     rows = final_table(metrics)
     width = max(len(k) for k, _ in rows)
