@@ -6,9 +6,13 @@ Presets differ only in numbers:
   256 — pass ``hidden_dim=256``), multipliers [1, 2, 4, 8], attention at every resolution,
   dropout 0.2, condition embedding 128; trained with batch 64, Adam 1e-4, sampled with
   1000-step ancestral DDPM, guidance 1.2. ≈70 M parameters at Meta-World dims.
-* ``"cpu"`` — small enough for the whole FTB pipeline on a 2-core CPU: hidden 32,
-  multipliers [1, 2, 4, 8], cross-attention at the bottleneck only (factor 8), dropout 0.1;
-  batch 32, ancestral DDPM with 50 steps. Costs are in ``bench/results/diffusion_speed*.json``.
+* ``"cpu"`` — small enough for the whole FTB pipeline on a 2-core CPU: hidden 16,
+  multipliers [1, 2, 4, 8] (16/32/64/128 channels, 2.2 M parameters at Meta-World dims),
+  cross-attention at the bottleneck only (factor 8), no dropout; batch 16, 2,000 steps,
+  ancestral DDPM with 25 steps. Measured on the 2-core CPU at H=500 (Meta-World): 0.31 s per
+  training step at batch 16 (hidden 32: 0.57 s; batch 32: 1.4 s — super-linear on this CPU),
+  1.2 s per denoiser call over 100 trajectories with batched guidance. bf16 autocast was
+  slower here (small channels). Costs are in ``bench/results/diffusion_speed*.json``.
   Why DDPM and not DPM-Solver++/DDIM by default: on the toy task a briefly trained model
   sampled with the deterministic solvers gave clearly worse trajectories (toy, 400 steps:
   block-0 conditions -> mean true return -3.0 with DPM++ 25 / DDIM 25 vs -1.4 with DDPM 50,
@@ -59,9 +63,9 @@ PRESETS: dict[str, dict] = {
         "sample": dict(sampler="ddpm", steps=1000, guidance=1.2),
     },
     "cpu": {
-        "model": dict(_MODEL_DEFAULTS, hidden_dim=32, cond_dim=32, attention_factors=None, dropout=0.1),
-        "train": dict(batch_size=32, lr=1e-3, steps=2000, ema_decay=0.995, grad_clip=1.0),
-        "sample": dict(sampler="ddpm", steps=50, guidance=1.2),
+        "model": dict(_MODEL_DEFAULTS, hidden_dim=16, cond_dim=32, attention_factors=None, dropout=0.0),
+        "train": dict(batch_size=16, lr=1e-3, steps=2000, ema_decay=0.995, grad_clip=1.0),
+        "sample": dict(sampler="ddpm", steps=25, guidance=1.2),
     },
     "tiny": {
         "model": dict(_MODEL_DEFAULTS, hidden_dim=32, dim_mults=[1, 2], cond_dim=32, attention_factors=None,
