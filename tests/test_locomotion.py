@@ -1,0 +1,190 @@
+"""Locomotion datasets from our own SAC behaviour policies (torchrl_ftb.datasets.locomotion)."""
+import json
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.collectors import Collector
+
+from torchrl_ftb.data import trajectories_to_flat, validate_trajectories
+from torchrl_ftb.datasets.locomotion import (
+    POLICY_DIR,
+    collect_rollouts,
+    compact_replay,
+    evaluate_policy,
+    load_behavior_policy,
+    make_behavior_actor,
+    make_behavior_env,
+    make_locomotion_dataset,
+    resimulate_replay,
+    return_stats,
+    save_behavior_policy,
+    select_medium_checkpoint,
+    shipped_policy_path,
+)
+from torchrl_ftb.datasets.registry import get_dataset_generator
+from torchrl_ftb.envs import locomotion_true_reward
+
+SHIPPED_ENVS = ("hopper", "walker2d")
+
+
+@pytest.fixture(scope="module")
+def random_replay():
+    """A short SAC-style replay buffer (untrained actor) with float64 simulator states."""
+    torch.manual_seed(0)
+    env = make_behavior_env("hopper", seed=3, state_dtype=torch.float64)
+    actor = make_behavior_actor(obs_dim=11, action_dim=3, num_cells=(16,))
+    collector = Collector(env, actor, frames_per_batch=600, total_frames=600, auto_register_policy_transforms=False)
+    flat = torch.cat([data.reshape(-1) for data in collector])
+    collector.shutdown()
+    return flat
+
+
+def test_compact_replay_resimulates_the_buffer_exactly(random_replay):
+    flat = random_replay
+    done = flat["next", "done"].squeeze(-1)
+    cut = next(i for i in range(550, 600) if not bool(done[i - 1]))  # cut inside an episode
+    compact = compact_replay(flat, env="hopper", num_frames=cut)
+    assert compact["actions"].shape == (cut, 3) and int(compact["lengths"].sum()) == cut
+    td, check = resimulate_replay(compact, progress=False)
+    validate_trajectories(td, obs_dim=11, action_dim=3)
+    assert check["early_terminations"] == 0 and check["max_return_error"] < 1e-3
+    got = trajectories_to_flat(td)
+    assert torch.equal(got["observation"], flat["observation"][:cut])
+    assert torch.equal(got["next", "observation"], flat["next", "observation"][:cut])
+    assert torch.allclose(got["next", "reward"], flat["next", "reward"][:cut], atol=1e-6)
+    assert torch.equal(got["state"], flat["state"][:cut].float())
+    assert torch.equal(got["next", "terminated"], flat["next", "terminated"][:cut])
+    last = td[-1][td[-1]["mask"]]  # the cut episode: truncated, not terminated
+    assert bool(last["next", "truncated"][-1]) and not bool(last["next", "terminated"][-1])
+    assert not bool((td["next", "terminated"] & td["next", "truncated"]).any())
+
+
+def test_compact_replay_rejects_float32_state(random_replay):
+    bad = random_replay.clone()
+    bad.set("state", bad["state"].float())
+    with pytest.raises(ValueError, match="float64"):
+        compact_replay(bad, env="hopper", num_frames=100)
+    with pytest.raises(ValueError, match="num_frames"):
+        compact_replay(random_replay, env="hopper", num_frames=10**6)
+
+
+def test_collect_rollouts_layout_and_true_reward():
+    actor = make_behavior_actor(obs_dim=17, action_dim=6, num_cells=(16,))
+    td = collect_rollouts(actor, "walker2d", num_transitions=60, max_episode_steps=25, num_envs=4,
+                          seed=1, progress=False)
+    validate_trajectories(td, obs_dim=17, action_dim=6)
+    mask = td["mask"]
+    assert int(mask.sum()) >= 60 and int(mask.sum(-1).max()) <= 25
+    last = mask.sum(-1) - 1
+    rows = torch.arange(td.shape[0])
+    term, trunc = td["next", "terminated"].squeeze(-1), td["next", "truncated"].squeeze(-1)
+    # every episode ends exactly once, time limits are truncation, never both
+    assert bool((term | trunc)[rows, last].all())
+    assert int((term | trunc).sum()) == td.shape[0]
+    assert not bool((term & trunc).any())
+    assert bool(trunc[rows, last][mask.sum(-1) < 25].logical_not().all())
+    # state = qpos || qvel, consistent with the observation (qpos[1:], qvel)
+    valid = td[mask]
+    assert torch.allclose(valid["observation"][:, :8], valid["state"][:, 1:9])
+    assert torch.allclose(valid["observation"][:, 8:], valid["state"][:, 9:].clamp(-10, 10), atol=1e-5)
+    # rewards are the env's: checked with the envs-stage oracle (exact where no velocity
+    # was clipped in the observation)
+    exact = valid[valid["state"][:, 9:].abs().amax(-1) < 9.9][:10]
+    assert exact.shape[0] >= 3
+    r = locomotion_true_reward("walker2d", exact["observation"], exact["action"])
+    assert torch.allclose(r, exact["next", "reward"], atol=1e-3)
+    # seeded: same seed, same data
+    again = collect_rollouts(actor, "walker2d", num_transitions=60, max_episode_steps=25, num_envs=4,
+                             seed=1, progress=False)
+    assert torch.equal(again["action"], td["action"])
+
+
+def test_select_medium_checkpoint_and_errors(tmp_path):
+    assert select_medium_checkpoint([10.0, 400.0, 1200.0, 3000.0, 2500.0]) == (2, 3)
+    assert select_medium_checkpoint([-5.0, 3.0]) == (1, 1)
+    assert select_medium_checkpoint([-50.0, -20.0, -30.0]) == (1, 1)
+    with pytest.raises(ValueError):
+        select_medium_checkpoint([])
+    with pytest.raises(FileNotFoundError):
+        load_behavior_policy(tmp_path / "missing.pt")
+    torch.save({"weights": torch.zeros(2)}, tmp_path / "bad.pt")
+    with pytest.raises(ValueError, match="bad.pt"):
+        load_behavior_policy(tmp_path / "bad.pt")
+    with pytest.raises(ValueError, match="unknown locomotion dataset"):
+        make_locomotion_dataset("hopper-expert-replay", cache_dir=tmp_path)
+    assert get_dataset_generator("walker2d-medium-replay").name == "locomotion"
+    assert get_dataset_generator("hopper-medium-expert-v2").name == "locomotion"
+
+
+def test_save_load_behavior_policy_roundtrip(tmp_path):
+    actor = make_behavior_actor(obs_dim=11, action_dim=3, num_cells=(8, 8))
+    cfg = {"env_name": "Hopper-v5", "obs_dim": 11, "action_dim": 3, "num_cells": [8, 8]}
+    path = save_behavior_policy(actor, tmp_path / "p.pt", config=cfg, frames=7, eval_return=1.5)
+    torch.load(path, weights_only=True)  # plain tensors and values only
+    loaded, info = load_behavior_policy(path)
+    obs = TensorDict({"observation": torch.randn(5, 11)}, [5])
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        assert torch.equal(actor(obs.clone())["action"], loaded(obs.clone())["action"])
+    assert info["frames"] == 7 and info["eval_return"] == 1.5
+
+
+@pytest.mark.parametrize("env", SHIPPED_ENVS)
+def test_shipped_policies_load_act_and_beat_random(env):
+    record = json.loads((POLICY_DIR / f"{env}_policies.json").read_text())
+    for which in ("medium", "expert"):
+        path = shipped_policy_path(env, which)
+        assert path.stat().st_size < 1_000_000
+        assert "actor" in torch.load(path, weights_only=True)
+    expert, info = load_behavior_policy(shipped_policy_path(env, "expert"))
+    medium, _ = load_behavior_policy(shipped_policy_path(env, "medium"))
+    assert info["env_name"] == record["env_id"]
+    pol = record["policies"]
+    assert pol["expert"]["train_eval_return"] >= pol["medium"]["train_eval_return"]
+    # acts in the env, inside the action bounds, and does better than an untrained actor
+    untrained = make_behavior_actor(obs_dim=info["obs_dim"], action_dim=info["action_dim"])
+    steps = 150
+    ret_expert = evaluate_policy(expert, env, episodes=2, seed=5, max_steps=steps)
+    ret_random = evaluate_policy(untrained, env, episodes=2, seed=5, max_steps=steps)
+    assert min(ret_expert) > max(ret_random)
+    td = collect_rollouts(medium, env, num_transitions=20, max_episode_steps=20, num_envs=1, progress=False)
+    assert bool((td["action"].abs() <= 1).all())
+
+
+@pytest.mark.parametrize("env", SHIPPED_ENVS)
+def test_shipped_medium_replay_resimulates(env):
+    record = json.loads((POLICY_DIR / f"{env}_policies.json").read_text())["medium_replay"]
+    compact = torch.load(POLICY_DIR / record["file"], weights_only=True)
+    assert compact["num_frames"] == record["frames"]
+    n = 30  # the first episodes (the full buffer is checked by export_behavior_policies)
+    td, check = resimulate_replay(compact, max_episodes=n, progress=False)
+    returns = (td["next", "reward"].squeeze(-1) * td["mask"]).sum(-1)
+    assert torch.allclose(returns, compact["returns"][:n], atol=1e-2)
+    assert check["early_terminations"] == 0
+    assert record["resimulation_check"]["max_observation_error"] < 1e-5  # float32 rounding at most
+
+
+def test_make_medium_expert_dataset_groups_and_cache(tmp_path):
+    td, meta = make_locomotion_dataset("hopper-medium-expert", num_transitions=2000, seed=0,
+                                       cache_dir=tmp_path, progress=False)
+    validate_trajectories(td, obs_dim=11, action_dim=3)
+    group = meta["per_trajectory"]["group"]
+    assert meta["groups"] == ["medium", "expert"] and set(group.tolist()) == {0, 1}
+    ret = (td["next", "reward"].squeeze(-1) * td["mask"]).sum(-1)
+    # the expert half is better than the medium half (what makes medium-expert useful)
+    assert float(ret[group == 1].mean()) > float(ret[group == 0].mean())
+    stats = return_stats(td, env="hopper")
+    assert meta["stats"]["transitions"] == stats["transitions"] >= 2000
+    assert stats["return_min"] <= stats["return_median"] <= stats["return_max"]
+    assert "d4rl_score_median_approx" in stats
+    # time limits are truncation, never termination
+    at_limit = td["mask"].sum(-1) == 1000
+    if bool(at_limit.any()):
+        assert not bool(td["next", "terminated"][at_limit].any())
+    # cached: same folder, same data, no regeneration
+    td2, meta2 = make_locomotion_dataset("hopper-medium-expert", num_transitions=2000, seed=0,
+                                         cache_dir=tmp_path, progress=False)
+    assert meta2["path"] == meta["path"] and torch.equal(td2["observation"], td["observation"])
+    assert meta2["generation_seconds"] == meta["generation_seconds"]
