@@ -81,7 +81,7 @@ def paper_task(task: str) -> str | None:
 def task_overrides(task: str) -> list[str]:
     """Hydra overrides selecting ``task`` (``hopper-medium-replay`` → env + dataset kind)."""
     loco = re.fullmatch(r"(hopper|walker2d|halfcheetah)-(medium-replay|medium-expert|medium)(-v\d+)?", task)
-    if loco:  # the locomotion generator's option name (torchrl_ftb.datasets.locomotion)
+    if loco:  # dataset <env>-<kind>: torchrl_ftb.datasets.make_dataset(env, kind=...) via dataset.options
         return [f"env.name={loco.group(1)}", f"+dataset.options.kind={loco.group(2)}"]
     return [f"env.name={task}"]
 

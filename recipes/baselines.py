@@ -3,6 +3,7 @@
     python recipes/baselines.py method=iql env.name=button-press-v3 seed=0
     python recipes/baselines.py method=iql_rpsi labels.teacher=success
     python recipes/baselines.py method=bc10 env.name=toy preset=cpu
+    python recipes/baselines.py method=td3bc env.name=hopper +dataset.options.kind=medium-replay
 
 Stages: dataset (the generated, cached dataset FTB uses) → scripted labels (same seed →
 same pairs) → the method (``torchrl_ftb.baselines.run_baseline``) → evaluation with
@@ -13,11 +14,12 @@ With ``resume=true`` (default) a run whose ``metrics.json`` exists is not redone
 """
 from __future__ import annotations
 
+import functools
 import json
 import sys
 import time
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import hydra
 import torch
@@ -26,6 +28,8 @@ from omegaconf import DictConfig, OmegaConf
 from torchrl_ftb.baselines import METHODS, LABEL_METHODS, run_baseline
 from torchrl_ftb.data import atomic_torch_save, atomic_write_text
 from torchrl_ftb.data.labels import make_scripted_labels, make_teacher
+from torchrl_ftb.datasets import dataset_kwargs, make_dataset
+from torchrl_ftb.envs import check_env_matches, env_kind, make_env, normalized_score_fn
 from torchrl_ftb.policy import evaluate_policy
 from torchrl_ftb.provenance import git_commit, machine_info, make_logger
 
@@ -33,66 +37,8 @@ PRESETS = ("cpu", "paper")
 
 
 # ====================================================================
-# Environment and data
-# --------------------
-
-
-def env_kind(name: str) -> str:
-    """``"toy"``, ``"locomotion"`` or ``"metaworld"``; unknown names raise ``ValueError``."""
-    from torchrl_ftb.envs import LOCOMOTION_ENVS, metaworld_tasks
-
-    if name == "toy":
-        return "toy"
-    if name in LOCOMOTION_ENVS or name in LOCOMOTION_ENVS.values():
-        return "locomotion"
-    if name in metaworld_tasks():
-        return "metaworld"
-    raise ValueError(
-        f"env.name={name!r}: not 'toy', a locomotion env ({sorted(LOCOMOTION_ENVS)}) or a Meta-World v3 task"
-    )
-
-
-def make_env_factory(cfg: DictConfig, *, seed: int) -> Callable:
-    """Zero-argument factory of the evaluation env (torchrl ``EnvBase``)."""
-    name, kind = cfg.env.name, env_kind(cfg.env.name)
-    if kind == "toy":
-        from torchrl_ftb.testing import ToyLineEnv
-
-        def make():
-            env = ToyLineEnv(max_steps=int(cfg.dataset.horizon))
-            env.set_seed(seed)
-            return env
-
-        return make
-    if kind == "locomotion":
-        from torchrl_ftb.envs import make_locomotion_env
-
-        return lambda: make_locomotion_env(name, seed=seed)
-    from torchrl_ftb.envs import make_metaworld_env
-
-    return lambda: make_metaworld_env(name, seed=seed, max_episode_steps=int(cfg.env.max_episode_steps))
-
-
-def make_dataset(cfg: DictConfig):
-    """The trajectory batch FTB trains on (generated and cached by ``torchrl_ftb.datasets``)."""
-    name, kind = cfg.env.name, env_kind(cfg.env.name)
-    d = cfg.dataset
-    if kind == "toy":
-        from torchrl_ftb.testing import make_toy_dataset
-
-        td = make_toy_dataset(num_trajectories=int(d.num_trajectories), horizon=int(d.horizon), seed=int(d.seed))
-        return td, {"env": "toy", "num_trajectories": int(d.num_trajectories), "seed": int(d.seed)}
-    if kind == "metaworld":
-        from torchrl_ftb.datasets import make_metaworld_dataset
-
-        return make_metaworld_dataset(
-            name, episodes_per_group=int(d.episodes_per_group), noise=float(d.noise), seed=int(d.seed),
-            max_steps=int(cfg.env.max_episode_steps), cache_dir=d.cache_dir, progress=bool(cfg.progress),
-            num_workers=int(d.num_workers),
-        )
-    from torchrl_ftb.datasets import get_dataset_generator
-
-    return get_dataset_generator(name).fn(name, **OmegaConf.to_container(d.get("options", {}) or {}))
+# Data
+# ----
 
 
 def make_labels(cfg: DictConfig, trajs):
@@ -159,7 +105,13 @@ def run(cfg: DictConfig) -> dict[str, Any]:
                          project=cfg.logger.project_name, mode=cfg.logger.mode,
                          config=OmegaConf.to_container(cfg, resolve=True))
 
-    trajs, meta = make_dataset(cfg)
+    # FTB's data and evaluation env (torchrl_ftb.datasets.make_dataset / torchrl_ftb.envs.make_env)
+    name, kind, limit = cfg.env.name, env_kind(cfg.env.name), int(cfg.env.max_episode_steps)
+    trajs, meta = make_dataset(name, **dataset_kwargs(name, cfg.dataset, max_episode_steps=limit,
+                                                      progress=bool(cfg.progress)))
+    eval_env = functools.partial(make_env, name, seed=int(cfg.eval.seed), toy_horizon=int(cfg.dataset.horizon),
+                                 max_episode_steps=None if kind == "locomotion" else limit)  # locomotion: 1000
+    check_env_matches(eval_env, trajs, name=name)
     labels, teacher = make_labels(cfg, trajs)
     result = run_baseline(
         cfg.method, trajs, labels=labels, seed=int(cfg.seed),
@@ -175,18 +127,12 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     )
     atomic_torch_save({"method": cfg.method, "actor": result.actor.state_dict()}, run_dir / "actor.pt")
 
-    kind = env_kind(cfg.env.name)
-    normalized = None
-    if kind == "locomotion":
-        from torchrl_ftb.envs import d4rl_normalized_score
-
-        normalized = lambda r: float(d4rl_normalized_score(cfg.env.name, r))  # noqa: E731
     ev = evaluate_policy(  # exactly FTB's evaluation: same env seed, episodes, stop rule
-        make_env_factory(cfg, seed=int(cfg.eval.seed)), result.actor,
+        eval_env, result.actor,
         num_episodes=int(cfg.eval.num_episodes), seed=int(cfg.eval.seed),
         max_steps=int(cfg.eval.max_steps), num_envs=int(cfg.eval.num_envs),
         stop_on_success=bool(cfg.eval.stop_on_success) and kind == "metaworld",
-        normalized_score_fn=normalized, progress=bool(cfg.progress),
+        normalized_score_fn=normalized_score_fn(cfg.env.name), progress=bool(cfg.progress),
     )
     if kind == "metaworld":
         score_name, score = "success_rate", ev["success_rate"]

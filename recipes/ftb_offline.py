@@ -3,6 +3,7 @@
     python recipes/ftb_offline.py                      # button-press-v3, 30 scripted labels, cpu preset
     python recipes/ftb_offline.py preset=paper labels.teacher=success
     python recipes/ftb_offline.py env.name=toy         # ToyLineEnv, seconds
+    python recipes/ftb_offline.py env.name=hopper +dataset.options.kind=medium-replay  # D4RL-style (see config)
     python recipes/ftb_offline.py resume=true          # continue a killed run (same run_dir)
 
 Stages (each ends with a checkpoint in ``run_dir/checkpoints`` and an entry in
@@ -15,16 +16,22 @@ mismatched checkpoint raise a clear error and nothing is overwritten.
 The run directory receives ``config.yaml`` (resolved), ``metrics.json``, ``report.md``,
 ``plots/*.png`` (score and true return per flow step, before-vs-after histograms) and the
 logger's files (``logs/``). The final table is printed.
+
+Envs, datasets, true rewards and scores come from ``torchrl_ftb.envs`` (``make_env``,
+``true_reward_fn``, ``normalized_score_fn``) and ``torchrl_ftb.datasets`` (``make_dataset``):
+toy, Meta-World v3 (success rate) and locomotion (D4RL-normalized score; ``eval.stop_on_success``
+is ignored there).
 """
 from __future__ import annotations
 
+import functools
 import json
 import math
 import shutil
 import sys
 import time
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import hydra
 import torch
@@ -32,15 +39,12 @@ from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDict
 
 from torchrl_ftb.analysis import novelty, plot_flow_curves, plot_histograms
-from torchrl_ftb.data import (
-    atomic_torch_save,
-    atomic_write_text,
-    trajectories_to_flat,
-    validate_trajectories,
-)
+from torchrl_ftb.data import atomic_torch_save, atomic_write_text, trajectories_to_flat
 from torchrl_ftb.data.labels import load_labels, make_scripted_labels, make_teacher, save_labels, true_return
+from torchrl_ftb.datasets import dataset_kwargs, make_dataset
 from torchrl_ftb.diffusion import DiffusionSampler, get_preset, load_diffuser, make_diffuser, train_diffuser
 from torchrl_ftb.diffusion.train import CHECKPOINT_NAME
+from torchrl_ftb.envs import check_env_matches, env_kind, make_env, normalized_score_fn, true_reward_fn
 from torchrl_ftb.flow import FlowToBetter
 from torchrl_ftb.policy import (
     evaluate_policy,
@@ -66,83 +70,6 @@ RESUME_FREE_KEYS = ("resume", "overwrite", "progress", "logger", "device", "run_
 
 
 # ====================================================================
-# Environment and data
-# --------------------
-
-
-def env_kind(name: str) -> str:
-    """``"toy"`` or ``"metaworld"``; anything else raises a ``ValueError`` listing the options."""
-    if name == "toy":
-        return "toy"
-    from torchrl_ftb.envs import metaworld_tasks
-
-    if name in metaworld_tasks():
-        return "metaworld"
-    raise ValueError(f"env.name={name!r} is not 'toy' or a Meta-World v3 task (e.g. button-press-v3); "
-                     f"known tasks: {', '.join(metaworld_tasks()[:8])}, ...")
-
-
-def make_env_factory(cfg: DictConfig, *, seed: int) -> Callable:
-    """Zero-argument factory of the evaluation env (a torchrl ``EnvBase``)."""
-    name, kind = cfg.env.name, env_kind(cfg.env.name)
-    if kind == "toy":
-        from torchrl_ftb.testing import ToyLineEnv
-
-        def make_toy():
-            env = ToyLineEnv(max_steps=int(cfg.dataset.horizon))
-            env.set_seed(seed)
-            return env
-
-        return make_toy
-    from torchrl_ftb.envs import make_metaworld_env
-
-    return lambda: make_metaworld_env(name, seed=seed, max_episode_steps=int(cfg.env.max_episode_steps))
-
-
-def make_true_reward_fn(cfg: DictConfig) -> Callable | None:
-    """Ground-truth ``r(s, a)`` for statistics (toy: closed form; Meta-World: simulator)."""
-    if not cfg.flow.true_reward:
-        return None
-    if env_kind(cfg.env.name) == "toy":
-        from torchrl_ftb.testing import toy_reward
-
-        return toy_reward
-    from torchrl_ftb.envs import metaworld_true_reward
-
-    task = cfg.env.name
-    return lambda obs, act: metaworld_true_reward(task, obs, act)[0]
-
-
-def make_dataset(cfg: DictConfig, *, progress: bool) -> tuple[TensorDict, dict]:
-    """The trajectory batch ``[N, H]`` (Meta-World: generated once and cached)."""
-    d = cfg.dataset
-    if env_kind(cfg.env.name) == "toy":
-        from torchrl_ftb.testing import make_toy_dataset
-
-        td = make_toy_dataset(num_trajectories=int(d.num_trajectories), horizon=int(d.horizon), seed=int(d.seed))
-        return td, {"env_id": "toy", "path": None}
-    from torchrl_ftb.datasets import make_metaworld_dataset
-
-    return make_metaworld_dataset(
-        cfg.env.name, episodes_per_group=int(d.episodes_per_group), noise=float(d.noise), seed=int(d.seed),
-        max_steps=int(cfg.env.max_episode_steps), cache_dir=d.cache_dir, progress=progress,
-        num_workers=int(d.num_workers),
-    )
-
-
-def check_env_matches(make_env: Callable, trajs: TensorDict, *, name: str) -> tuple[int, int]:
-    """Raise a clear ``ValueError`` when the dataset's dims differ from the env's."""
-    env = make_env()
-    try:
-        obs_dim = int(env.observation_spec["observation"].shape[-1])
-        act_dim = int(env.action_spec.shape[-1])
-    finally:
-        env.close()
-    validate_trajectories(trajs, name=f"dataset for env {name!r}", obs_dim=obs_dim, action_dim=act_dim)
-    return obs_dim, act_dim
-
-
-# ====================================================================
 # Run directory bookkeeping
 # -------------------------
 
@@ -153,11 +80,15 @@ def _comparable(cfg: DictConfig) -> dict:
 
 
 def _diff_keys(a: Any, b: Any, prefix: str = "") -> list[str]:
+    """Differences ``old -> new`` between config ``a`` (new) and ``b`` (saved); a key the saved
+    config lacks matches an empty new value (an option added later, left at its no-op default)."""
     if isinstance(a, dict) and isinstance(b, dict):
         out = []
         for k in sorted(set(a) | set(b), key=str):
             out += _diff_keys(a.get(k, "<missing>"), b.get(k, "<missing>"), f"{prefix}{k}.")
         return out
+    if b == "<missing>" and a in (None, {}, []):
+        return []
     return [] if a == b else [f"{prefix[:-1]}: {b!r} -> {a!r}"]
 
 
@@ -390,6 +321,9 @@ def final_table(metrics: dict) -> list[tuple[str, str]]:
     rows = [("env", metrics["env"]), ("preset", metrics["preset"]), ("teacher", metrics["teacher"])]
     if "success_rate" in ev:
         rows.append(("success rate (FTB policy)", _fmt(ev["success_rate"])))
+    if "normalized_score" in ev:
+        rows.append(("D4RL normalized score (FTB policy)",
+                     f"{ev['normalized_score']:.4g} ± {ev['normalized_score_std']:.3g}"))
     rows += [
         ("return (FTB policy)", f"{ev['return_mean']:.4g} ± {ev['return_std']:.3g}"),
         ("episode length", _fmt(ev["length_mean"])),
@@ -457,9 +391,13 @@ def run(cfg: DictConfig) -> dict:
 
     # 1. dataset ------------------------------------------------------------------------
     t0 = time.perf_counter()
-    trajs, meta = make_dataset(cfg, progress=progress)
-    eval_env = make_env_factory(cfg, seed=int(cfg.eval.seed))
-    obs_dim, act_dim = check_env_matches(eval_env, trajs, name=cfg.env.name)
+    # envs and data: torchrl_ftb.datasets.make_dataset (cached) / torchrl_ftb.envs.make_env
+    name, limit = cfg.env.name, int(cfg.env.max_episode_steps)
+    trajs, meta = make_dataset(name, **dataset_kwargs(name, cfg.dataset, max_episode_steps=limit,
+                                                      progress=progress))
+    eval_env = functools.partial(make_env, name, seed=int(cfg.eval.seed), toy_horizon=int(cfg.dataset.horizon),
+                                 max_episode_steps=None if kind == "locomotion" else limit)  # locomotion: 1000
+    obs_dim, act_dim = check_env_matches(eval_env, trajs, name=name)
     if not run_dir.done("dataset"):
         run_dir.mark("dataset", num_trajectories=int(trajs.batch_size[0]), horizon=int(trajs.batch_size[1]),
                      obs_dim=obs_dim, action_dim=act_dim, path=meta.get("path"))
@@ -501,9 +439,9 @@ def run(cfg: DictConfig) -> dict:
 
     # 6. flow ---------------------------------------------------------------------------
     t0 = time.perf_counter()
-    true_reward_fn = make_true_reward_fn(cfg)
+    reward_fn = true_reward_fn(cfg.env.name) if cfg.flow.true_reward else None
     flow = stage_flow(cfg, run_dir, trajs, scores, block_ids, make_sampler(cfg, diffuser), model,
-                      true_reward_fn, logger)
+                      reward_fn, logger)
     timed("flow", t0)
 
     # 7. BC -----------------------------------------------------------------------------
@@ -516,7 +454,7 @@ def run(cfg: DictConfig) -> dict:
     ev = evaluate_policy(eval_env, actor, num_episodes=int(cfg.eval.num_episodes), seed=int(cfg.eval.seed),
                          max_steps=int(cfg.eval.max_steps), num_envs=int(cfg.eval.num_envs),
                          stop_on_success=bool(cfg.eval.stop_on_success) and kind == "metaworld",
-                         progress=progress)
+                         normalized_score_fn=normalized_score_fn(cfg.env.name), progress=progress)
     run_dir.mark("eval", **ev)
     if logger is not None:
         for k, v in ev.items():

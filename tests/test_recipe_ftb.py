@@ -105,14 +105,18 @@ def test_kill_during_diffuser_training_then_resume_end_to_end(tmp_path):
 
 def test_bad_config_is_a_clear_error(tmp_path):
     recipe = _recipe()
-    with pytest.raises(ValueError, match="not 'toy' or a Meta-World"):
+    with pytest.raises(ValueError, match="unknown env 'no-such-task-v3'.*Meta-World"):
         recipe.run(_cfg(tmp_path / "a", "env.name=no-such-task-v3"))
     with pytest.raises(ValueError, match="preset='gpu' is unknown"):
         recipe.run(_cfg(tmp_path / "b", "preset=gpu"))
     with pytest.raises(ValueError, match="teacher"):
         recipe.run(_cfg(tmp_path / "c", "labels.teacher=oracle"))
     # a dataset whose dims do not match the env
+    from torchrl_ftb.envs import check_env_matches
     from torchrl_ftb.testing import MetaWorldMockEnv, make_toy_dataset
 
     with pytest.raises(ValueError, match="obs_dim=39"):
-        recipe.check_env_matches(MetaWorldMockEnv, make_toy_dataset(num_trajectories=4, horizon=8), name="mock")
+        check_env_matches(MetaWorldMockEnv, make_toy_dataset(num_trajectories=4, horizon=8), name="mock")
+    # a locomotion env without the dataset kind
+    with pytest.raises(ValueError, match="kind="):
+        recipe.run(_cfg(tmp_path / "d", "env.name=hopper"))
