@@ -104,3 +104,16 @@ def test_locomotion_true_reward_matches_hopper_rollout():
     assert rollout.shape == (6,)  # the StepCounter limit
     reward = true_reward_fn("hopper")(rollout["observation"], rollout["action"])
     torch.testing.assert_close(reward, rollout["next", "reward"], atol=1e-4, rtol=0)
+
+
+@pytest.mark.integration
+def test_metaworld_evaluation_episodes_differ():
+    """Evaluation resets draw new goals: a deterministic policy does not replay one episode."""
+    from torchrl_ftb.envs import make_env
+
+    env = make_env("button-press-v3", seed=1000, max_episode_steps=3)
+    starts = [env.reset()["observation"].clone() for _ in range(3)]
+    assert not torch.allclose(starts[0], starts[1]) or not torch.allclose(starts[1], starts[2])
+    fixed = make_env("button-press-v3", seed=1000, max_episode_steps=3, random_goal=False)
+    a, b = fixed.reset()["observation"].clone(), fixed.reset()["observation"].clone()
+    assert torch.allclose(a, b)

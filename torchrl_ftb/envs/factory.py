@@ -74,6 +74,7 @@ def make_env(
     seed: int,
     max_episode_steps: int | None = None,
     toy_horizon: int = 32,
+    random_goal: bool = True,
     device: str | torch.device = "cpu",
 ):
     """A seeded torchrl env for ``name`` (see :func:`env_kind`).
@@ -85,6 +86,10 @@ def make_env(
             (:func:`make_metaworld_env`); locomotion: default the gymnasium limit (1000), a
             value adds a :class:`torchrl.envs.StepCounter` limit; toy: ignored (``toy_horizon``).
         toy_horizon: the toy env's episode length.
+        random_goal: Meta-World only: draw a new (seeded) goal / object placement at every
+            reset, as MT1 evaluation does. With ``False`` every episode starts from the same
+            goal and state, so N evaluation episodes of a deterministic policy are one episode
+            repeated N times.
         device: torch device of the env outputs.
 
     Returns:
@@ -110,7 +115,7 @@ def make_env(
         return env
     if kind == "metaworld":
         kwargs = {} if max_episode_steps is None else {"max_episode_steps": int(max_episode_steps)}
-        return make_metaworld_env(name, seed=int(seed), device=device, **kwargs)
+        return make_metaworld_env(name, seed=int(seed), device=device, random_goal=random_goal, **kwargs)
     env = make_locomotion_env(name, seed=int(seed), device=device)
     if max_episode_steps is not None:
         from torchrl.envs import StepCounter
