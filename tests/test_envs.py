@@ -146,3 +146,20 @@ def test_metaworld_true_reward_matches_env_on_real_transitions(button_press_epis
     assert r_far.sum() < 0.5 * r_true.sum()
     with pytest.raises(ValueError, match="observation"):
         metaworld_true_reward("button-press-v3", torch.zeros(3, 38), torch.zeros(3, 4))
+
+
+@pytest.mark.integration
+def test_metaworld_true_reward_accepts_out_of_range_gripper(button_press_episode):
+    """Generated observations may put the gripper opening (obs[3], obs[21]) outside the [0, 1]
+    that Meta-World's observation guarantees; the helper projects it back instead of letting
+    Meta-World's ``hamacher_product`` raise."""
+    td = button_press_episode
+    wide, clipped = td.clone(), td.clone()
+    for key in ("observation", ("next", "observation")):
+        wide[key][..., [3, 21]] = 1.4
+        clipped[key][..., [3, 21]] = 1.0
+    r_wide, s_wide = metaworld_true_reward("button-press-v3", wide["observation"], wide["action"],
+                                           next_observation=wide["next", "observation"])
+    r_clip, s_clip = metaworld_true_reward("button-press-v3", clipped["observation"], clipped["action"],
+                                           next_observation=clipped["next", "observation"])
+    assert torch.equal(r_wide, r_clip) and torch.equal(s_wide, s_clip)

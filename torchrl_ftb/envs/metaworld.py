@@ -262,6 +262,12 @@ class _SequenceRewarder:
         import mujoco
 
         u = self.u
+        # Meta-World's observation clips the gripper opening (current and stacked previous frame)
+        # to [0, 1] and its rewards assume it (``hamacher_product`` raises otherwise); generated
+        # observations can leave that range, so project them back as the env would. No-op on real data.
+        obs, next_obs = obs.copy(), next_obs.copy()
+        for x in (obs, next_obs):
+            x[:, [3, 21]] = np.clip(x[:, [3, 21]], 0.0, 1.0)
         self.fit_reset(obs[0])
         mocap_id = u.model.body_mocapid[u.data.body("mocap").id]
         rewards = np.zeros(len(obs))
