@@ -256,3 +256,14 @@ def test_trains_on_preference_block_pair_buffer(data):
     assert out["step"] == 2 and all(torch.isfinite(torch.tensor(out["losses"])))
     sample = d.generate(data[:2], sampler="ddim", steps=2, autocast_bf16=True)
     assert torch.isfinite(sample["observation"]).all()
+
+
+def test_bottleneck_width_warns():
+    """A first level narrower than the diffused dims caps the eps-MSE; say so at construction."""
+    with pytest.warns(UserWarning, match="bottleneck"):
+        make_diffuser("cpu", obs_dim=39, action_dim=4, horizon=16, hidden_dim=16)
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        make_diffuser("cpu", obs_dim=39, action_dim=4, horizon=16, hidden_dim=48, cond_dim=48)
