@@ -259,11 +259,15 @@ def test_trains_on_preference_block_pair_buffer(data):
 
 
 def test_bottleneck_width_warns():
-    """A first level narrower than the diffused dims caps the eps-MSE; say so at construction."""
+    """Fewer numbers per step through the first level (+ its stride-2 down-sampling) than
+    diffused dims caps the eps-MSE; say so at construction."""
     with pytest.warns(UserWarning, match="bottleneck"):
         make_diffuser("cpu", obs_dim=39, action_dim=4, horizon=16, hidden_dim=16)
+    with pytest.warns(UserWarning, match="bottleneck"):  # 48 channels per 2 steps = 24 per step < 44
+        make_diffuser("cpu", obs_dim=39, action_dim=4, horizon=16, hidden_dim=48, cond_dim=48)
     import warnings
 
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        make_diffuser("cpu", obs_dim=39, action_dim=4, horizon=16, hidden_dim=48, cond_dim=48)
+        make_diffuser("cpu", obs_dim=39, action_dim=4, horizon=16, hidden_dim=88, cond_dim=32, dim_mults=[1, 2])
+        make_diffuser("cpu", obs_dim=39, action_dim=4, horizon=16, hidden_dim=44, cond_dim=32, dim_mults=[1])
