@@ -47,7 +47,12 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
 
-from torchrl_ftb.data.trajectories import atomic_directory, atomic_write_text, validate_trajectories
+from torchrl_ftb.data.trajectories import (
+    atomic_directory,
+    atomic_write_text,
+    read_memmap_folder,
+    validate_trajectories,
+)
 
 __all__ = [
     "LABELS_FORMAT_VERSION",
@@ -675,17 +680,5 @@ def load_labels(path: str | os.PathLike) -> tuple[TensorDict, dict]:
         ValueError: unknown format version or malformed content.
     """
     path = Path(path)
-    meta_file = path / "meta.json"
-    if not meta_file.is_file() or not (path / "data").is_dir():
-        raise FileNotFoundError(f"{path}: not a torchrl_ftb label set (missing meta.json or data/)")
-    try:
-        meta = json.loads(meta_file.read_text())
-    except json.JSONDecodeError as err:
-        raise ValueError(f"{meta_file}: corrupt metadata ({err})") from err
-    if meta.get("format_version") != LABELS_FORMAT_VERSION:
-        raise ValueError(
-            f"{meta_file}: format_version {meta.get('format_version')!r} is not supported "
-            f"(expected {LABELS_FORMAT_VERSION})"
-        )
-    labels = TensorDict.load_memmap(path / "data").to_tensordict()
+    labels, meta = read_memmap_folder(path, what="label set", format_version=LABELS_FORMAT_VERSION)
     return validate_labels(labels, name=str(path)), meta

@@ -37,6 +37,7 @@ __all__ = [
     "flat_to_trajectories",
     "trajectories_to_flat",
     "pad_trajectories",
+    "read_memmap_folder",
     "save_trajectories",
     "load_trajectories",
     "atomic_directory",
@@ -291,6 +292,32 @@ def save_trajectories(
     return path
 
 
+def read_memmap_folder(path: str | os.PathLike, *, what: str, format_version: int) -> tuple[TensorDict, dict]:
+    """Read a folder written as ``data/`` (``TensorDict.memmap``) + ``meta.json`` (into memory).
+
+    Shared by datasets and label sets; ``meta.json`` is written last, so its absence means
+    an incomplete write.
+
+    Raises:
+        FileNotFoundError: ``meta.json`` or ``data/`` missing (``what`` names the kind of folder).
+        ValueError: corrupt ``meta.json`` or a ``format_version`` other than ``format_version``.
+    """
+    path = Path(path)
+    meta_file = path / "meta.json"
+    if not meta_file.is_file() or not (path / "data").is_dir():
+        raise FileNotFoundError(f"{path}: not a torchrl_ftb {what} (missing meta.json or data/)")
+    try:
+        meta = json.loads(meta_file.read_text())
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{meta_file}: corrupt metadata ({err})") from err
+    if meta.get("format_version") != format_version:
+        raise ValueError(
+            f"{meta_file}: format_version {meta.get('format_version')!r} is not supported "
+            f"(expected {format_version})"
+        )
+    return TensorDict.load_memmap(path / "data").to_tensordict(), meta
+
+
 def load_trajectories(
     path: str | os.PathLike, *, with_per_trajectory: bool = False
 ) -> tuple[TensorDict, dict] | tuple[TensorDict, dict, TensorDict | None]:
@@ -304,19 +331,7 @@ def load_trajectories(
         ValueError: unknown format version or malformed content.
     """
     path = Path(path)
-    meta_file = path / "meta.json"
-    if not meta_file.exists() or not (path / "data").exists():
-        raise FileNotFoundError(f"{path}: not a torchrl_ftb dataset (missing meta.json or data/)")
-    try:
-        meta = json.loads(meta_file.read_text())
-    except json.JSONDecodeError as err:
-        raise ValueError(f"{meta_file}: corrupt metadata ({err})") from err
-    if meta.get("format_version") != FORMAT_VERSION:
-        raise ValueError(
-            f"{meta_file}: format_version {meta.get('format_version')!r} is not supported "
-            f"(expected {FORMAT_VERSION})"
-        )
-    td = TensorDict.load_memmap(path / "data").to_tensordict()
+    td, meta = read_memmap_folder(path, what="dataset", format_version=FORMAT_VERSION)
     validate_trajectories(
         td, name=str(path), obs_dim=meta.get("obs_dim"), action_dim=meta.get("action_dim")
     )
