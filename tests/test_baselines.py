@@ -39,6 +39,8 @@ TINY = dict(
     progress=False,
 )
 
+pytestmark = pytest.mark.usefixtures("one_thread")
+
 
 def _load(path: Path, name: str):
     spec = importlib.util.spec_from_file_location(name, path)
@@ -46,15 +48,6 @@ def _load(path: Path, name: str):
     sys.modules[name] = module
     spec.loader.exec_module(module)
     return module
-
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """Small networks on a shared 2-core machine: 1 thread is ~10x faster than oversubscribed 2."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 @pytest.fixture(scope="module")

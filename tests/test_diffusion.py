@@ -19,16 +19,9 @@ from torchrl_ftb.diffusion import (
 )
 from torchrl_ftb.testing import make_toy_dataset
 
+pytestmark = pytest.mark.usefixtures("one_thread")
+
 H = 12
-
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """Tiny nets: one intra-op thread is faster than two on a shared 2-core machine."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 @pytest.fixture(scope="module")

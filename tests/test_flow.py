@@ -5,7 +5,6 @@ import warnings
 
 import pytest
 import torch
-from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 
 from torchrl_ftb.analysis import dynamics_error, improvement, novelty, plot_flow_curves, plot_histograms, toy_oracle_step
@@ -20,15 +19,9 @@ from torchrl_ftb.flow import (
 )
 from torchrl_ftb.testing import make_toy_dataset, toy_reward
 
+pytestmark = pytest.mark.usefixtures("one_thread")
+
 H = 16
-
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
 
 
 def _sum_ax(td):

@@ -16,17 +16,8 @@ from torchrl_ftb.policy import (
 )
 from torchrl_ftb.testing import MetaWorldMockEnv, ToyLineEnv, make_toy_dataset, toy_optimal_return
 
-pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
+pytestmark = [pytest.mark.filterwarnings("ignore::UserWarning"), pytest.mark.usefixtures("one_thread")]
 H = 16
-
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """Tiny models: one thread is faster than two on a shared 2-core machine."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
 
 
 def _expert_transitions(n: int = 64) -> TensorDict:

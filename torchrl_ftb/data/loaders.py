@@ -548,18 +548,7 @@ def load_minari(
         raise FileNotFoundError(f"{data_dir}: no local Minari dataset (missing metadata.json)")
     name = str(data_dir.parent if data_dir.name == "data" else data_dir)
     dataset = minari.MinariDataset(data_dir)
-    columns: dict = {
-        k: []
-        for k in (
-            "observations",
-            "actions",
-            "rewards",
-            "terminals",
-            "timeouts",
-            "next_observations",
-            "success",
-        )
-    }
+    columns: dict = {k: [] for k in TRANSITION_FIELDS if k != "states"}  # Minari keeps no sim state
     for ep in dataset.iterate_episodes():
         if not isinstance(ep.observations, np.ndarray) or not isinstance(ep.actions, np.ndarray):
             raise ValueError(
