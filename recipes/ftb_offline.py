@@ -234,13 +234,14 @@ def stage_diffuser(cfg, run: RunDir, trajs, block_ids, obs_dim, act_dim, device,
     d = cfg.diffuser
     horizon = int(trajs.batch_size[1])
     overrides = {} if d.overrides is None else OmegaConf.to_container(d.overrides, resolve=True)
-    diffuser = make_diffuser(str(d.preset), obs_dim=obs_dim, action_dim=act_dim, horizon=horizon, **overrides)
+    # data=: fits the normaliser on the dataset's valid steps and leaves its constant dims undiffused
+    diffuser = make_diffuser(str(d.preset), obs_dim=obs_dim, action_dim=act_dim, horizon=horizon, data=trajs,
+                             **overrides).to(device)
     ckpt_dir = run.ckpt / "diffuser"
     path = ckpt_dir / CHECKPOINT_NAME
     if run.done("diffuser"):
         return load_diffuser(path, diffuser=diffuser, map_location=device), run.stages["diffuser"]
     s = diffuser_settings(cfg)
-    diffuser.fit_normalizer(trajs).to(device)
     buffer = make_block_pair_buffer(trajs, block_ids, batch_size=s["batch_size"], seed=int(cfg.seed))
     out = train_diffuser(
         diffuser, buffer, steps=s["steps"], lr=s["lr"], grad_clip=s["grad_clip"], logger=logger,

@@ -252,15 +252,69 @@ def test_trains_on_preference_block_pair_buffer(data):
 
 
 def test_bottleneck_width_warns():
-    """Fewer numbers per step through the first level (+ its stride-2 down-sampling) than
-    diffused dims caps the eps-MSE; say so at construction."""
-    with pytest.warns(UserWarning, match="bottleneck"):
-        make_diffuser("cpu", obs_dim=39, action_dim=4, horizon=16, hidden_dim=16)
-    with pytest.warns(UserWarning, match="bottleneck"):  # 48 channels per 2 steps = 24 per step < 44
-        make_diffuser("cpu", obs_dim=39, action_dim=4, horizon=16, hidden_dim=48, cond_dim=48)
+    """Fewer channels on the full-resolution path than diffused dims caps the eps-MSE; say so
+    at construction (39 obs + 4 act + validity = 44 dims)."""
     import warnings
 
+    with pytest.warns(UserWarning, match="bottleneck"):
+        make_diffuser("cpu", obs_dim=39, action_dim=4, horizon=16, hidden_dim=16)
+    with pytest.warns(UserWarning, match="bottleneck"):
+        make_diffuser("cpu", obs_dim=39, action_dim=4, horizon=16, hidden_dim=32, cond_dim=32)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        make_diffuser("cpu", obs_dim=39, action_dim=4, horizon=16, hidden_dim=88, cond_dim=32, dim_mults=[1, 2])
-        make_diffuser("cpu", obs_dim=39, action_dim=4, horizon=16, hidden_dim=44, cond_dim=32, dim_mults=[1])
+        make_diffuser("cpu", obs_dim=39, action_dim=4, horizon=16, hidden_dim=44, cond_dim=32, dim_mults=[1, 2])
+        # 30 static dims leave 14 diffused: 32 channels suffice
+        make_diffuser("cpu", obs_dim=39, action_dim=4, horizon=16, hidden_dim=32, cond_dim=32,
+                      static_dims=range(30))
+
+
+def test_level0_skip_is_used():
+    """The output at step h depends on x_t at step h through the full-resolution skip: a U-Net
+    without it (Janner et al.'s) passes x_t only through a stride-2 down-sampling."""
+    torch.manual_seed(0)
+    net = TemporalUnet(4, hidden_dim=8, dim_mults=(1, 2, 4)).eval()
+    assert len(net.ups) == len(net.downs)
+    x = torch.randn(1, 16, 4, requires_grad=True)
+    out = net(x, torch.tensor([5]))
+    (grad,) = torch.autograd.grad(out[0, 7].sum(), x)
+    assert grad[0, 7].abs().sum() > 0
+
+
+def _with_constant_dims(data):
+    obs = data["observation"]
+    const = torch.stack([torch.full_like(obs[..., 0], 0.7), torch.zeros_like(obs[..., 0])], -1)
+    out = data.clone()
+    out.set("observation", torch.cat([obs, const], -1) * data["mask"][..., None])
+    return out
+
+
+def test_static_dims_are_not_diffused_and_restored(data, tmp_path):
+    data5 = _with_constant_dims(data)
+    torch.manual_seed(0)
+    d = make_diffuser("tiny", obs_dim=5, action_dim=2, horizon=H, data=data5)
+    assert d.static_dims == (3, 4) and d.transition_dim == 3 + 2 + 1 and d.normalizer.is_fitted
+    batch = _pairs(data5, torch.arange(8), torch.arange(8, 16))
+    assert torch.isfinite(DiffusionLoss(d)(batch)["loss_diffusion"])
+    train_diffuser(d, lambda: batch, steps=2, lr=1e-2, progress=False)
+    sample = d.generate(data5[:4], sampler="ddpm", steps=3)
+    m = sample["mask"]
+    assert torch.allclose(sample["observation"][..., 3][m], torch.tensor(0.7))
+    assert (sample["observation"][..., 4][m] == 0).all()
+    # actions are clipped to the data's range (no margin), observations may go beyond it
+    act = data5["action"][data5["mask"]]
+    assert (sample["action"][m] >= act.min(0).values - 1e-4).all()
+    assert (sample["action"][m] <= act.max(0).values + 1e-4).all()
+    # the static dims travel with the checkpoint
+    d2 = load_diffuser(save_diffuser(d, tmp_path / "static.pt"))
+    assert d2.static_dims == (3, 4)
+    g = dict(sampler="ddim", steps=2, generator=None)
+    torch.manual_seed(1)
+    a = d.generate(data5[:2], **g)
+    torch.manual_seed(1)
+    b = d2.generate(data5[:2], **g)
+    assert torch.equal(a["observation"], b["observation"])
+    # refitting on data where a static dim varies is an error, not silent garbage
+    varying = data5.clone()
+    varying["observation"][..., 3] = torch.randn_like(varying["observation"][..., 3])
+    with pytest.raises(ValueError, match=r"dims \[3\].*vary"):
+        d.fit_normalizer(varying)

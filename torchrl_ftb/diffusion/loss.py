@@ -111,7 +111,7 @@ class DiffusionLoss(LossModule):
         err = (eps.float() - noise).pow(2)
         data_err = (err[..., :-1] * mask[..., None]).sum()
         valid_err = err[..., -1].sum()
-        n_data = mask.sum() * d.data_dim
+        n_data = mask.sum() * d.diffused_dim
         loss = (data_err + valid_err) / (n_data + mask.numel())
         return TensorDict(
             {

@@ -9,6 +9,12 @@ are small): its loss is computed on *every* step while the state/action (reward)
 masked to valid steps, and padded target steps are set to 0 (in z-score space) before
 noising so their raw values never reach the model.
 
+**Static dimensions** (``static_dims``): data dimensions that are constant over the dataset
+(Meta-World pads absent objects with zeros: 15-25 of its 39 observation dims never change in
+one task) are not diffused -- they carry no information, yet the denoiser would have to spend
+per-step capacity reproducing their noise. They are filled with their constant on decoding.
+:func:`~torchrl_ftb.diffusion.make_diffuser` finds them from the data (``data=``).
+
 The denoising networks (``backbone`` + ``encoder``, which holds the learned null condition)
 live in ``networks``; ``ema`` is a :class:`torch.optim.swa_utils.AveragedModel` copy of them
 (updated by :meth:`update_ema`, used by :meth:`generate` by default). The normaliser's
@@ -30,6 +36,7 @@ from __future__ import annotations
 
 import contextlib
 import warnings
+from typing import Sequence
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -64,8 +71,11 @@ class TrajectoryDiffuser(nn.Module):
         ema_decay: decay of the EMA of the networks.
         horizon: default horizon of generated trajectories (used when no condition is given).
         clip_margin: at sampling, the predicted ``x_0`` is clamped to the data's range (z-space)
-            widened by this fraction of its width on each side (validity channel to [-1, 1]);
+            widened by this fraction of its width on each side (observations and reward;
+            actions to the data's action range itself, validity channel to [-1, 1]);
             ``None`` disables clipping (see :mod:`torchrl_ftb.diffusion.process`).
+        static_dims: indices into ``[obs, action (, reward)]`` that are constant in the data
+            and not diffused (filled with the normaliser's mean on decoding).
     """
 
     def __init__(
@@ -83,11 +93,21 @@ class TrajectoryDiffuser(nn.Module):
         ema_decay: float = 0.995,
         horizon: int | None = None,
         clip_margin: float | None = 0.5,
+        static_dims: Sequence[int] = (),
     ) -> None:
         super().__init__()
         self.clip_margin = clip_margin
         self.obs_dim, self.action_dim = int(obs_dim), int(action_dim)
         self.reward_channel = bool(reward_channel)
+        static = sorted({int(i) for i in static_dims})
+        if static and (static[0] < 0 or static[-1] >= self.data_dim):
+            raise ValueError(f"static_dims {static} out of range for {self.data_dim} data dims")
+        if len(static) >= self.data_dim:
+            raise ValueError("static_dims: at least one data dimension must be diffused")
+        self.static_dims = tuple(static)
+        self.register_buffer("diffused_index",
+                             torch.tensor([i for i in range(self.data_dim) if i not in set(static)]),
+                             persistent=False)
         self.unconditional = bool(unconditional)
         if not 0.0 <= cond_drop_prob < 1.0:
             raise ValueError(f"cond_drop_prob must be in [0, 1), got {cond_drop_prob}")
@@ -97,13 +117,14 @@ class TrajectoryDiffuser(nn.Module):
         if backbone.transition_dim != self.transition_dim:
             raise ValueError(f"backbone.transition_dim={backbone.transition_dim} but the diffuser needs "
                              f"{self.transition_dim} (obs {obs_dim} + action {action_dim}"
-                             f"{' + reward 1' if reward_channel else ''} + validity 1)")
+                             f"{' + reward 1' if reward_channel else ''} - static {len(static)} + validity 1)")
         if normalizer.dim != self.data_dim:
             raise ValueError(f"normalizer.dim={normalizer.dim} but the data have {self.data_dim} dims")
         if unconditional != (encoder is None):
             raise ValueError("pass encoder=None exactly when unconditional=True")
-        if encoder is not None and encoder.transition_dim != self.data_dim:
-            raise ValueError(f"encoder.transition_dim={encoder.transition_dim} but conditions have {self.data_dim} dims")
+        if encoder is not None and encoder.transition_dim != self.diffused_dim:
+            raise ValueError(f"encoder.transition_dim={encoder.transition_dim} but conditions have "
+                             f"{self.diffused_dim} (non-static) dims")
         if encoder is not None and backbone.cond_dim != encoder.embed_dim:
             raise ValueError(f"backbone.cond_dim={backbone.cond_dim} != encoder.embed_dim={encoder.embed_dim}")
         self.normalizer = normalizer
@@ -122,9 +143,14 @@ class TrajectoryDiffuser(nn.Module):
         return self.obs_dim + self.action_dim + int(self.reward_channel)
 
     @property
+    def diffused_dim(self) -> int:
+        """Number of data dimensions that are diffused (``data_dim`` minus the static ones)."""
+        return self.data_dim - len(self.static_dims)
+
+    @property
     def transition_dim(self) -> int:
-        """Size of the diffused vector (data + validity channel)."""
-        return self.data_dim + 1
+        """Size of the diffused vector (non-static data + validity channel)."""
+        return self.diffused_dim + 1
 
     @property
     def backbone(self) -> DenoiserBackbone:
@@ -164,6 +190,10 @@ class TrajectoryDiffuser(nn.Module):
             raise ValueError("fit_normalizer: expected a padded trajectory batch [N, H] with a 'mask'")
         self.normalizer.fit(self.raw_data_from_td(trajectories, name="fit_normalizer").to(self.normalizer.mean.device),
                             trajectories.get("mask").to(self.normalizer.mean.device))
+        varying = [i for i in self.static_dims if not bool(self.normalizer.constant[i])]
+        if varying:
+            raise ValueError(f"fit_normalizer: data dims {varying} were built as static (not diffused) but vary "
+                             f"in these trajectories; rebuild with make_diffuser(..., data=trajectories)")
         return self
 
     def _check_fitted(self) -> None:
@@ -175,13 +205,25 @@ class TrajectoryDiffuser(nn.Module):
         """Normalised data (0 on padded steps) + validity channel (+1 valid / -1 padded)."""
         self._check_fitted()
         m = mask.bool()[..., None]
-        x = torch.where(m, self.normalizer.normalize(raw), torch.zeros_like(raw))
+        x = self._diffused(torch.where(m, self.normalizer.normalize(raw), torch.zeros_like(raw)))
         return torch.cat([x, m.float() * 2.0 - 1.0], -1)
 
     def condition_input(self, raw: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         """Normalised condition (0 on padded steps)."""
         self._check_fitted()
-        return torch.where(mask.bool()[..., None], self.normalizer.normalize(raw), torch.zeros_like(raw))
+        return self._diffused(torch.where(mask.bool()[..., None], self.normalizer.normalize(raw), torch.zeros_like(raw)))
+
+    def _diffused(self, z: torch.Tensor) -> torch.Tensor:
+        """The non-static dimensions of a normalised ``[..., data_dim]`` tensor."""
+        return z if not self.static_dims else z.index_select(-1, self.diffused_index.to(z.device))
+
+    def _full(self, z: torch.Tensor) -> torch.Tensor:
+        """Scatter diffused dims ``[..., diffused_dim]`` into ``[..., data_dim]`` (static dims: z = 0)."""
+        if not self.static_dims:
+            return z
+        full = z.new_zeros(*z.shape[:-1], self.data_dim)
+        full[..., self.diffused_index.to(z.device)] = z
+        return full
 
     @staticmethod
     def detect_mask(validity: torch.Tensor) -> torch.Tensor:
@@ -199,7 +241,8 @@ class TrajectoryDiffuser(nn.Module):
     def decode(self, x: torch.Tensor) -> TensorDict:
         """Model-space sample ``[B, H, transition_dim]`` -> trajectory batch (raw units, padded zeros)."""
         mask = self.detect_mask(x[..., -1])
-        raw = self.normalizer.unnormalize(x[..., :-1]) * mask[..., None]
+        # static dims sit at z = 0, i.e. their constant (the fitted mean) in raw units
+        raw = self.normalizer.unnormalize(self._full(x[..., :-1])) * mask[..., None]
         o, a = self.obs_dim, self.action_dim
         out = {"observation": raw[..., :o], "action": raw[..., o:o + a], "mask": mask}
         if self.reward_channel:
@@ -211,8 +254,12 @@ class TrajectoryDiffuser(nn.Module):
         if self.clip_margin is None:
             return None
         low, high = self.normalizer.normalized_bounds(self.clip_margin)
+        # actions: the data's own range (the env's limits), no margin
+        a_low, a_high = self.normalizer.normalized_bounds(0.0)
+        acts = slice(self.obs_dim, self.obs_dim + self.action_dim)
+        low[acts], high[acts] = a_low[acts], a_high[acts]
         one = torch.ones(1, device=low.device)
-        return torch.cat([low, -one]), torch.cat([high, one])
+        return torch.cat([self._diffused(low), -one]), torch.cat([self._diffused(high), one])
 
     # ------------------------------------------------------------------ networks
     def encode_condition(self, cond: torch.Tensor, cond_mask: torch.Tensor, *, drop: torch.Tensor | None = None,

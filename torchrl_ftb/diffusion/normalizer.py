@@ -39,6 +39,8 @@ class TrajectoryNormalizer(nn.Module):
         # raw-unit range of the fitted data (bounds for clipping denoised samples)
         self.register_buffer("low", torch.full((self.dim,), -float("inf")))
         self.register_buffer("high", torch.full((self.dim,), float("inf")))
+        # 1.0 where the fitted data are constant (std below min_std): candidates for static dims
+        self.register_buffer("constant", torch.zeros(self.dim))
         # float flag (not bool) so it survives any float-only state handling; 1.0 once fitted
         self.register_buffer("fitted", torch.zeros(()))
 
@@ -59,11 +61,17 @@ class TrajectoryNormalizer(nn.Module):
             raise ValueError("TrajectoryNormalizer.fit: non-finite values on valid steps")
         values = values.double()
         self.mean.copy_(values.mean(0))
-        self.std.copy_(values.std(0).clamp(min=self.min_std))
+        std = values.std(0)
+        self.constant.copy_((std < self.min_std).to(self.constant.dtype))
+        self.std.copy_(std.clamp(min=self.min_std))
         self.low.copy_(values.min(0).values)
         self.high.copy_(values.max(0).values)
         self.fitted.fill_(1.0)
         return self
+
+    def constant_dims(self) -> list[int]:
+        """Indices of the dimensions that were constant in the fitted data."""
+        return [int(i) for i in torch.nonzero(self.constant > 0).flatten()]
 
     def normalized_bounds(self, margin: float) -> tuple[torch.Tensor, torch.Tensor]:
         """Data range in z-score space, widened by ``margin`` x its width on both sides."""

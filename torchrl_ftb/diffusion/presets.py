@@ -6,13 +6,15 @@ Presets differ only in numbers:
   256 — pass ``hidden_dim=256``), multipliers [1, 2, 4, 8], attention at every resolution,
   dropout 0.2, condition embedding 128; trained with batch 64, Adam 1e-4, sampled with
   1000-step ancestral DDPM, guidance 1.2. ≈70 M parameters at Meta-World dims.
-* ``"cpu"`` — small enough for the whole FTB pipeline on a 2-core CPU: hidden 16,
-  multipliers [1, 2, 4, 8] (16/32/64/128 channels, 2.2 M parameters at Meta-World dims),
-  cross-attention at the bottleneck only (factor 8), no dropout; batch 16, 2,000 steps,
-  ancestral DDPM with 25 steps. Measured on the 2-core CPU at H=500 (Meta-World): 0.31 s per
-  training step at batch 16 (hidden 32: 0.57 s; batch 32: 1.4 s — super-linear on this CPU),
-  1.2 s per denoiser call over 100 trajectories with batched guidance. bf16 autocast was
-  slower here (small channels). Costs are in ``bench/results/diffusion_speed*.json``.
+* ``"cpu"`` — small enough for the whole FTB pipeline on a 2-core CPU: hidden 32,
+  multipliers [1, 2, 2, 4] (32/64/64/128 channels, 1.9 M parameters on button-press-v3 with its
+  24 constant observation dims left out), cross-attention at the bottleneck only (factor 8),
+  no dropout; batch 16, 1,500 steps, ancestral DDPM with 25 steps. Sizing, measured at H=500
+  on button-press-v3 (1 thread, the other core busy): 0.75 s per training step; hidden 32 with
+  [1, 2, 4, 8] 1.3 s, hidden 24 [1, 2, 4, 8] 0.87 s, [1, 1, 2, 2] 0.60 s; bf16 autocast
+  0.79 s (no gain at these widths); held-out eps-MSE after 600 steps 0.08 at t=900,
+  0.13 at t=600, 0.22 at t=300 (the previous preset, hidden 16 without the level-0 skip:
+  0.85 at every t). Costs are in ``bench/results/diffusion_speed*.json``.
   Why DDPM and not DPM-Solver++/DDIM by default: on the toy task a briefly trained model
   sampled with the deterministic solvers gave clearly worse trajectories (toy, 400 steps:
   block-0 conditions -> mean true return -3.0 with DPM++ 25 / DDIM 25 vs -1.4 with DDPM 50,
@@ -39,6 +41,10 @@ from __future__ import annotations
 
 import copy
 import warnings
+from typing import Sequence
+
+import torch
+from tensordict import TensorDictBase
 
 from torchrl_ftb.diffusion.backbones.unet import TemporalUnet
 from torchrl_ftb.diffusion.condition import TrajectoryEncoder
@@ -70,8 +76,9 @@ PRESETS: dict[str, dict] = {
         "sample": dict(sampler="ddpm", steps=1000, guidance=1.2),
     },
     "cpu": {
-        "model": dict(_MODEL_DEFAULTS, hidden_dim=16, cond_dim=32, attention_factors=None, dropout=0.0),
-        "train": dict(batch_size=16, lr=1e-3, steps=2000, ema_decay=0.995, grad_clip=1.0),
+        "model": dict(_MODEL_DEFAULTS, hidden_dim=32, dim_mults=[1, 2, 2, 4], cond_dim=32, attention_factors=None,
+                      dropout=0.0),
+        "train": dict(batch_size=16, lr=1e-3, steps=1500, ema_decay=0.995, grad_clip=1.0),
         "sample": dict(sampler="ddpm", steps=25, guidance=1.2),
     },
     "tiny": {
@@ -98,6 +105,8 @@ def make_diffuser(
     horizon: int,
     reward_channel: bool = False,
     unconditional: bool = False,
+    data: TensorDictBase | None = None,
+    static_dims: Sequence[int] | None = None,
     **overrides,
 ) -> TrajectoryDiffuser:
     """Build a :class:`TrajectoryDiffuser` from a preset, with model-field overrides.
@@ -109,10 +118,15 @@ def make_diffuser(
         horizon: (maximum) trajectory horizon; the default length of unconditional samples.
         reward_channel: also diffuse ``("next", "reward")`` (FTB as data augmentation).
         unconditional: no condition (SYNTHETIC-style baseline).
+        data: the dataset's padded trajectories ``[N, H]``: the normaliser is fitted on them and,
+            unless ``static_dims`` is given, their constant dimensions are not diffused (see
+            :class:`TrajectoryDiffuser`). Without ``data``, call ``fit_normalizer`` yourself.
+        static_dims: indices into ``[obs, action (, reward)]`` not to diffuse (default: none, or
+            the constant ones of ``data``).
         **overrides: any key of the preset's ``model`` section (e.g. ``hidden_dim=64``).
 
     Returns:
-        The diffuser (normaliser not fitted yet: call ``fit_normalizer(dataset)``), with
+        The diffuser (normaliser fitted iff ``data`` was given), with
         ``diffuser.config`` holding everything needed to rebuild it (see ``load_diffuser``).
     """
     cfg = get_preset(preset)["model"]
@@ -121,26 +135,36 @@ def make_diffuser(
         raise ValueError(f"make_diffuser: unknown option(s) {sorted(unknown)}; valid: {sorted(cfg)}")
     cfg.update(overrides)
     data_dim = obs_dim + action_dim + int(reward_channel)
-    # Everything the output knows about x_t passes the full-resolution level and, with more than
-    # one level, its stride-2 down-sampling (level 0's skip is unused, as in Janner et al.): that
-    # is hidden*mults[0] channels per 2 steps, i.e. hidden*mults[0]/2 numbers per step. Fewer than
-    # the diffused dims caps the eps-MSE at ~1 - capacity/dims even at t = T - 1 where eps ~ x_t.
-    # Measured (learn eps = x_t at t=999, 44 dims, H=64, 600 steps): hidden 16 -> 0.84 (bound 0.82),
-    # hidden 48 -> 0.54 (bound 0.45), hidden 96 -> 0.24 and falling; the cpu-preset FTB diffuser
-    # (hidden 16, 2,000 steps) scores 0.85 at every t.
-    width = cfg["hidden_dim"] * cfg["dim_mults"][0]
-    capacity = width // 2 if len(cfg["dim_mults"]) > 1 else width
-    if capacity < data_dim + 1:
+    normalizer = TrajectoryNormalizer(data_dim)
+    if data is not None:
+        if data.batch_dims != 2 or "mask" not in data.keys():
+            raise ValueError("make_diffuser: data must be a padded trajectory batch [N, H] with a 'mask'")
+        parts = [data.get("observation"), data.get("action")]
+        if reward_channel:
+            if ("next", "reward") not in data.keys(True):
+                raise ValueError("make_diffuser: reward_channel=True but data has no ('next', 'reward')")
+            parts.append(data.get(("next", "reward")).reshape(*data.batch_size, 1))
+        normalizer.fit(torch.cat([p.float() for p in parts], -1), data.get("mask"))
+        if static_dims is None:
+            static_dims = normalizer.constant_dims()
+    static_dims = sorted({int(i) for i in (static_dims or ())})
+    diffused = data_dim - len(static_dims)
+    # Everything the output knows about x_t per step passes the full-resolution level (hidden *
+    # mults[0] channels); fewer channels than diffused dims cap the eps-MSE at ~1 - capacity/dims
+    # even at t = T - 1 where eps ~ x_t. (Before level 0's skip was used, the cap was half that:
+    # measured eps-MSE 0.85 at every t for the old cpu preset, hidden 16, 44 dims.)
+    capacity = cfg["hidden_dim"] * cfg["dim_mults"][0]
+    if capacity < diffused + 1:
         warnings.warn(
-            f"make_diffuser: the U-Net carries {capacity} numbers per step (hidden_dim*dim_mults[0]"
-            f"{'/2' if len(cfg['dim_mults']) > 1 else ''}) for {data_dim + 1} diffused dimensions: a bottleneck "
-            f"(eps-MSE floor ~ {1 - capacity / (data_dim + 1):.2f}). Use hidden_dim*dim_mults[0] >= "
-            f"{(2 if len(cfg['dim_mults']) > 1 else 1) * (data_dim + 1)}.",
+            f"make_diffuser: the U-Net's full-resolution path carries {capacity} numbers per step "
+            f"(hidden_dim*dim_mults[0]) for {diffused + 1} diffused dimensions: a bottleneck "
+            f"(eps-MSE floor ~ {1 - capacity / (diffused + 1):.2f}). Use hidden_dim*dim_mults[0] >= "
+            f"{diffused + 1}, or pass data= so constant dimensions are not diffused.",
             stacklevel=2,
         )
     cond_dim = None if unconditional else cfg["cond_dim"]
     backbone = TemporalUnet(
-        data_dim + 1,
+        diffused + 1,
         hidden_dim=cfg["hidden_dim"],
         dim_mults=tuple(cfg["dim_mults"]),
         cond_dim=cond_dim,
@@ -149,13 +173,13 @@ def make_diffuser(
         kernel_size=cfg["kernel_size"],
         dropout=cfg["dropout"],
     )
-    encoder = None if unconditional else TrajectoryEncoder(data_dim, embed_dim=cfg["cond_dim"],
+    encoder = None if unconditional else TrajectoryEncoder(diffused, embed_dim=cfg["cond_dim"],
                                                            kernel_size=cfg["kernel_size"])
     diffuser = TrajectoryDiffuser(
         backbone,
         encoder,
         DiffusionProcess(num_train_timesteps=cfg["num_train_timesteps"], beta_schedule=cfg["beta_schedule"]),
-        TrajectoryNormalizer(data_dim),
+        normalizer,
         obs_dim=obs_dim,
         action_dim=action_dim,
         reward_channel=reward_channel,
@@ -164,8 +188,9 @@ def make_diffuser(
         ema_decay=cfg["ema_decay"],
         horizon=horizon,
         clip_margin=cfg["clip_margin"],
+        static_dims=static_dims,
     )
     diffuser.config = {"preset": preset, "obs_dim": int(obs_dim), "action_dim": int(action_dim),
                        "horizon": int(horizon), "reward_channel": bool(reward_channel),
-                       "unconditional": bool(unconditional), **overrides}
+                       "unconditional": bool(unconditional), "static_dims": list(static_dims), **overrides}
     return diffuser

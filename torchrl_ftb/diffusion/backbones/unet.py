@@ -185,14 +185,20 @@ class TemporalUnet(DenoiserBackbone):
             attention(dims[-1], lowest),
             ResidualTemporalBlock(dims[-1], dims[-1], **res),
         ])
+        # Every level's skip is used, level 0's included: Janner et al.'s U-Net drops it, which leaves
+        # the output only hidden*mults[0]/2 numbers per step (a stride-2 conv) to carry x_t -- an
+        # eps-MSE floor of ~1 - that/D we measured at 0.85 for D = 44 (bench/results/
+        # diffusion_quality_button-press-v3.json). Here the full-resolution path carries hidden_dim.
         self.ups = nn.ModuleList()
-        for i in reversed(range(1, levels)):  # skip from level i, output at level i - 1
+        h_dim = dims[-1]
+        for i in reversed(range(levels)):  # skip from level i, output at level i - 1 (level 0: none)
             self.ups.append(nn.ModuleList([
-                ResidualTemporalBlock(2 * dims[i], dims[i - 1], **res),
-                attention(dims[i - 1], 2**i),
-                ResidualTemporalBlock(dims[i - 1], dims[i - 1], **res),
-                nn.ConvTranspose1d(dims[i - 1], dims[i - 1], 4, stride=2, padding=1),
+                ResidualTemporalBlock(h_dim + dims[i], dims[i], **res),
+                attention(dims[i], 2**i),
+                ResidualTemporalBlock(dims[i], dims[i], **res),
+                nn.ConvTranspose1d(dims[i], dims[i], 4, stride=2, padding=1) if i > 0 else nn.Identity(),
             ]))
+            h_dim = dims[i]
         self.output = nn.Sequential(Conv1dBlock(dims[0], dims[0], kernel_size), nn.Conv1d(dims[0], transition_dim, 1))
 
     def forward(
@@ -216,7 +222,7 @@ class TemporalUnet(DenoiserBackbone):
             h = down(h)
         res1, attn, res2 = self.mid
         h = res2(attn(res1(h, t_emb), cond_emb, cond_mask), t_emb)
-        # level i's skip joins the up block at level i; level 0's is unused (as in Janner et al.)
+        # level i's skip joins the up block at level i (all levels, level 0 included)
         for res1, attn, res2, up in self.ups:
             h = torch.cat([h, skips.pop()], 1)
             h = up(res2(attn(res1(h, t_emb), cond_emb, cond_mask), t_emb))
