@@ -10,7 +10,7 @@ commit, machine info and results. Not a test.
 
 Usage::
 
-    nice -n 10 python bench/diffusion_speed.py --horizon 500 --obs-dim 39 --action-dim 4 \
+    python bench/diffusion_speed.py --horizon 500 --obs-dim 39 --action-dim 4 --static-dims 24 \
         --presets cpu paper --train-steps 5 --paper-train-steps 2 --sample-batch 16
 """
 from __future__ import annotations
@@ -28,12 +28,15 @@ from torchrl_ftb.diffusion import DiffusionSampler, get_preset, make_diffuser, t
 from torchrl_ftb.provenance import git_commit, machine_info, write_json
 
 
-def _random_trajectories(n: int, horizon: int, obs_dim: int, action_dim: int, seed: int) -> TensorDict:
+def _random_trajectories(n: int, horizon: int, obs_dim: int, action_dim: int, seed: int,
+                         static_dims: int = 0) -> TensorDict:
     g = torch.Generator().manual_seed(seed)
     lengths = torch.randint(horizon // 2, horizon + 1, (n,), generator=g)
     mask = torch.arange(horizon) < lengths[:, None]
     m = mask[..., None].float()
-    return TensorDict({"observation": torch.randn(n, horizon, obs_dim, generator=g) * m,
+    obs = torch.randn(n, horizon, obs_dim, generator=g)
+    obs[..., :static_dims] = 0.5  # constant dims (Meta-World's zero-padded objects): not diffused
+    return TensorDict({"observation": obs * m,
                        "action": torch.rand(n, horizon, action_dim, generator=g).mul(2).sub(1) * m,
                        "mask": mask}, batch_size=[n, horizon])
 
@@ -41,9 +44,9 @@ def _random_trajectories(n: int, horizon: int, obs_dim: int, action_dim: int, se
 def bench_preset(preset: str, args, *, bf16: bool, train_steps: int) -> dict:
     torch.manual_seed(0)
     device = torch.device(args.device)
-    data = _random_trajectories(64, args.horizon, args.obs_dim, args.action_dim, 0)
+    data = _random_trajectories(64, args.horizon, args.obs_dim, args.action_dim, 0, args.static_dims)
     diffuser = make_diffuser(preset, obs_dim=args.obs_dim, action_dim=args.action_dim, horizon=args.horizon,
-                             **json.loads(args.overrides)).fit_normalizer(data).to(device)
+                             data=data, **json.loads(args.overrides)).to(device)
     batch_size = args.batch_size or get_preset(preset)["train"]["batch_size"]
     g = torch.Generator().manual_seed(1)
 
@@ -56,7 +59,8 @@ def bench_preset(preset: str, args, *, bf16: bool, train_steps: int) -> dict:
     t0 = time.perf_counter()
     out = train_diffuser(diffuser, sample, steps=train_steps, progress=False, device=device, autocast_bf16=bf16)
     wall = time.perf_counter() - t0
-    result = {"preset": preset, "overrides": json.loads(args.overrides), "bf16": bf16, "parameters": n_params, "batch_size": batch_size,
+    result = {"preset": preset, "overrides": json.loads(args.overrides), "bf16": bf16, "parameters": n_params,
+              "diffused_dims": diffuser.transition_dim, "batch_size": batch_size,
               "train_steps_timed": train_steps, "s_per_train_step": wall / max(train_steps, 1),
               "train_trajectories_per_s": batch_size * train_steps / wall, "final_loss": out["final_loss"]}
     calls = []
@@ -85,6 +89,8 @@ def main() -> None:
     parser.add_argument("--horizon", type=int, default=500)
     parser.add_argument("--obs-dim", type=int, default=39)
     parser.add_argument("--action-dim", type=int, default=4)
+    parser.add_argument("--static-dims", type=int, default=24,
+                        help="constant observation dims of the synthetic data (button-press-v3: 24 of 39)")
     parser.add_argument("--batch-size", type=int, default=None, help="default: the preset's")
     parser.add_argument("--train-steps", type=int, default=5)
     parser.add_argument("--paper-train-steps", type=int, default=2)

@@ -38,7 +38,8 @@ def _summary(values: list[float]) -> dict:
 def _train(labels, obs_dim: int, act_dim: int, args, seed: int, *, eval_labels=None):
     from torchrl_ftb.preference import ScoreModel, train_score_model
 
-    model = ScoreModel(obs_dim, act_dim, num_cells=args.num_cells, num_layers=args.num_layers, seed=seed)
+    model = ScoreModel(obs_dim, act_dim, num_cells=args.num_cells, num_layers=args.num_layers, seed=seed,
+                       num_members=args.members)
     start = time.perf_counter()
     out = train_score_model(model, labels, steps=args.steps, batch_size=256, lr=args.lr, eval_fraction=0.0,
                             eval_labels=eval_labels, seed=seed, progress=False)
@@ -147,18 +148,21 @@ def main() -> None:
     parser.add_argument("--lr", type=float, default=1e-3)
     parser.add_argument("--num-cells", type=int, default=256)
     parser.add_argument("--num-layers", type=int, default=3)
+    parser.add_argument("--members", type=int, default=1, help="score-model ensemble size (score = member mean)")
     parser.add_argument("--episodes-per-group", type=int, default=25)
     parser.add_argument("--noise", type=float, default=1.0)
     parser.add_argument("--workers", type=int, default=1)
     parser.add_argument("--eval-pairs", type=int, default=300)
     parser.add_argument("--no-plots", dest="plots", action="store_false")
     parser.add_argument("--out-dir", default=str(ROOT / "bench" / "results"))
+    parser.add_argument("--tag", default="", help="suffix of the results file (variants side by side)")
     args = parser.parse_args()
     torch.set_num_threads(1)
     from torchrl_ftb.provenance import git_commit, machine_info, write_json
 
     for part in args.part:
-        out = Path(args.out_dir) / {"a": "score_model_metaworld.json", "b": "score_model_hopper.json"}[part]
+        name = {"a": "score_model_metaworld", "b": "score_model_hopper"}[part]
+        out = Path(args.out_dir) / f"{name}{'_' + args.tag if args.tag else ''}.json"
         record = {"benchmark": f"score_model/{part}", "command": " ".join([sys.executable, *sys.argv]),
                   "config": dict(vars(args)), "commit": git_commit(), "machine": machine_info(),
                   "started": time.strftime("%Y-%m-%dT%H:%M:%S"), "results": {}}

@@ -230,9 +230,47 @@ def render_table(cells: list[dict[str, Any]]) -> str:
     return "\n".join(lines).rstrip()
 
 
+def render_flow_table(cells: list[dict[str, Any]]) -> str:
+    """FTB cells only: what the flow did (paper §4.3, Fig. 4 left) and what the run cost."""
+    rows = [c for c in cells if c["method"] == "ftb" and isinstance(c.get("metrics", {}).get("flow"), dict)]
+    if not rows:
+        return ""
+    lines = [
+        "**FTB cells: the flow (final set vs. the original top-k) and the cost.** `valid` / `accept`: "
+        "share of the first flow step's samples that were valid / accepted; *true return* of "
+        "generated Meta-World trajectories is the simulator-replayed reward (`metaworld_true_reward`, "
+        "up to 16 % error, BENCHMARKS § datasets); locomotion: the oracle reward of the generated "
+        "(s, a) pairs. `wall`: the whole cell, other jobs sharing the 2 cores.",
+        "",
+        "| task | teacher | seed | flow steps | accepted | valid / accept | score mean before → after | "
+        "true return mean before → after | true return max before → after | policy score | wall (min) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+
+    def num(value: Any, fmt: str = "{:.1f}") -> str:
+        return fmt.format(value) if isinstance(value, (int, float)) else "—"
+
+    for c in sorted(rows, key=lambda c: (c["env"], c.get("teacher", ""), c["seed"])):
+        f = c["metrics"]["flow"]
+        first = (c["metrics"].get("flow_stats") or [{}])[0]
+        lines.append(
+            f"| {c['env']} | {c.get('teacher', 'return')} | {c['seed']} | {num(f.get('flow_steps_run'), '{:.0f}')} | "
+            f"{num(f.get('num_generated_accepted'), '{:.0f}')} | "
+            f"{num(first.get('valid_rate'), '{:.2f}')} / {num(first.get('accept_rate'), '{:.2f}')} | "
+            f"{num(f.get('score_mean_before'))} → {num(f.get('score_mean_after'))} | "
+            f"{num(f.get('true_return_mean_before'))} → {num(f.get('true_return_mean_after'))} | "
+            f"{num(f.get('true_return_max_before'))} → {num(f.get('true_return_max_after'))} | "
+            f"{num(c.get('score'), '{:.2f}')} | {num(c.get('wall_time_s', 0) / 60)} |"
+        )
+    return "\n".join(lines)
+
+
 def write_markdown(results_dir: Path, md_path: Path) -> None:
     """Replace the marked section of ``md_path`` (created or appended if absent), atomically."""
-    section = f"{START}\n{render_table(load_cells(results_dir))}\n{END}"
+    cells = load_cells(results_dir)
+    body = render_table(cells)
+    flow = render_flow_table(cells)
+    section = f"{START}\n{body}\n\n{flow}\n{END}" if flow else f"{START}\n{body}\n{END}"
     text = md_path.read_text() if md_path.exists() else "# Benchmarks\n"
     if START in text and END in text and text.index(START) < text.index(END):
         text = text[: text.index(START)] + section + text[text.index(END) + len(END):]

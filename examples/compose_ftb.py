@@ -35,7 +35,7 @@ def main() -> None:
     blocks = make_blocks(scores, 5, seed=0)
 
     # 2. conditional trajectory diffuser trained on adjacent-block pairs
-    diffuser = make_diffuser("tiny", obs_dim=3, action_dim=2, horizon=32).fit_normalizer(trajs)
+    diffuser = make_diffuser("tiny", obs_dim=3, action_dim=2, horizon=32, data=trajs)  # fits the normaliser
     pairs = make_block_pair_buffer(trajs, blocks, batch_size=32, seed=0)
     train_diffuser(diffuser, pairs, steps=300, lr=3e-3, grad_clip=1.0, progress=False)
 

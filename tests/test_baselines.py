@@ -208,3 +208,15 @@ def test_table1_markdown_between_markers(tmp_path):
     assert text.startswith("# Benchmarks\n\nintro\n") and text.rstrip().endswith("tail") and "old" not in text
     section = text.split("<!-- table1:start -->")[1].split("<!-- table1:end -->")[0]
     assert "0.60 ± 0.10 (n=2)" in section and "paper" in section.lower() and "0.70" in section  # paper IQL 0.70
+    # an FTB cell adds the flow table (what the flow did, not only the policy's score)
+    table1.write_cell_json(cells / "ftb__button-press-v3__seed0.json", {
+        "method": "ftb", "env": "button-press-v3", "seed": 0, "score": 1.0, "teacher": "success",
+        "wall_time_s": 1200.0,
+        "metrics": {"flow": {"flow_steps_run": 2, "num_generated_accepted": 37, "score_mean_before": 10.0,
+                             "score_mean_after": 12.5, "true_return_mean_before": 100.0,
+                             "true_return_mean_after": 140.0, "true_return_max_before": 300.0,
+                             "true_return_max_after": 320.0},
+                    "flow_stats": [{"valid_rate": 0.9, "accept_rate": 0.3}]}})
+    table1.write_markdown(cells, md)
+    section = md.read_text().split("<!-- table1:start -->")[1].split("<!-- table1:end -->")[0]
+    assert "| button-press-v3 | success | 0 | 2 | 37 | 0.90 / 0.30 | 10.0 → 12.5 | 100.0 → 140.0 | 300.0 → 320.0 | 1.00 | 20.0 |" in section
