@@ -102,7 +102,7 @@ def denoiser_check(diffuser, trajs, *, timesteps=(10, 100, 500, 900, 999), seed:
             noise = torch.randn(x0.shape, generator=g)
             eps = nets["backbone"](diffuser.process.add_noise(x0, noise, tt), tt, emb, cmask).float()
             err = (eps - noise).pow(2)
-            out[str(t)] = {"mse_data": float((err[..., :-1] * mask[..., None]).sum() / (mask.sum() * diffuser.data_dim)),
+            out[str(t)] = {"mse_data": float((err[..., :-1] * mask[..., None]).sum() / (mask.sum() * diffuser.diffused_dim)),
                            "mse_validity": float(err[..., -1].mean())}
     finally:
         nets.train(was_training)
@@ -155,7 +155,7 @@ def main() -> None:
         batch_size = args.batch_size or preset["train"]["batch_size"]
         rb = make_block_pair_buffer(data, blocks, batch_size=batch_size, seed=args.seed)
         diffuser = make_diffuser(args.preset, obs_dim=data["observation"].shape[-1],
-                                 action_dim=data["action"].shape[-1], horizon=data.batch_size[1]).fit_normalizer(data)
+                                 action_dim=data["action"].shape[-1], horizon=data.batch_size[1], data=data)
         t0 = time.perf_counter()
         train = train_diffuser(diffuser, rb, steps=args.train_steps, lr=args.lr or preset["train"]["lr"],
                                grad_clip=preset["train"]["grad_clip"], autocast_bf16=args.autocast_bf16,

@@ -66,7 +66,10 @@ from torchrl_ftb.provenance import git_commit, machine_info, make_logger, write_
 
 STAGES = ("dataset", "labels", "score_model", "blocks", "diffuser", "flow", "bc", "eval")
 # config entries that may change between a killed run and its resume
-RESUME_FREE_KEYS = ("resume", "overwrite", "progress", "logger", "device", "run_dir", "hydra")
+RESUME_FREE_KEYS = ("resume", "overwrite", "redo_from", "progress", "logger", "device", "run_dir", "hydra")
+#: what each stage leaves under ``checkpoints/`` (removed by ``redo_from``)
+STAGE_CHECKPOINTS = {"labels": ("labels",), "score_model": ("score_model.pt",), "blocks": ("blocks.pt",),
+                     "diffuser": ("diffuser",), "flow": ("flow.pt",), "bc": ("bc.pt",)}
 
 
 # ====================================================================
@@ -117,10 +120,25 @@ class RunDir:
                 self.stages = json.loads(self.stages_file.read_text())
             except json.JSONDecodeError as err:
                 raise ValueError(f"{self.stages_file}: corrupt stage file ({err})") from err
+        redo = cfg.get("redo_from")
+        if redo is not None:
+            if redo not in STAGES:
+                raise ValueError(f"redo_from={redo!r}: not a stage; choose one of {list(STAGES)}")
+            if not self.resume:
+                raise ValueError("redo_from needs resume=true (it redoes the later stages of an existing run)")
+            for name in STAGES[STAGES.index(redo):]:
+                self.stages.pop(name, None)
+                for item in STAGE_CHECKPOINTS.get(name, ()):
+                    target = self.ckpt / item
+                    shutil.rmtree(target) if target.is_dir() else target.unlink(missing_ok=True)
+            if self.stages_file.exists():
+                write_json(self.stages_file, self.stages)
         if self.resume and self.config_file.exists():
             old = OmegaConf.to_container(OmegaConf.load(self.config_file), resolve=True)
-            old = {k: v for k, v in old.items() if k not in RESUME_FREE_KEYS}
-            diff = _diff_keys(_comparable(cfg), old)
+            # the config sections of redone stages may change (that is what redo_from is for)
+            free = set(RESUME_FREE_KEYS) | (set(STAGES[STAGES.index(redo):]) if redo is not None else set())
+            old = {k: v for k, v in old.items() if k not in free}
+            diff = _diff_keys({k: v for k, v in _comparable(cfg).items() if k not in free}, old)
             if diff:
                 raise ValueError(f"{self.config_file}: resume=true with a different config: " + "; ".join(diff))
         self.path.mkdir(parents=True, exist_ok=True)

@@ -86,11 +86,23 @@ def test_kill_during_diffuser_training_then_resume_end_to_end(tmp_path):
     again = recipe.run(_cfg(run_dir, "resume=true"))
     assert again["eval"] == metrics["eval"]
 
+    # redo_from: the flow (with a changed flow setting) and later stages are redone, the
+    # diffuser and earlier stages are loaded, not retrained
+    diffuser_mtime = ckpt.stat().st_mtime_ns
+    redone = recipe.run(_cfg(run_dir, "resume=true", "redo_from=flow", "flow.threshold=1.01"))
+    assert ckpt.stat().st_mtime_ns == diffuser_mtime
+    assert redone["flow"]["threshold"] == 1.01 and metrics["flow"]["threshold"] != 1.01
+    assert json.loads((run_dir / "stages.json").read_text())["eval"]["done"]
+    with pytest.raises(ValueError, match="different config"):  # earlier stages' settings still locked
+        recipe.run(_cfg(run_dir, "resume=true", "redo_from=flow", "diffuser.steps=41"))
+    with pytest.raises(ValueError, match="not a stage"):
+        recipe.run(_cfg(run_dir, "resume=true", "redo_from=sampling"))
+
     # a corrupt checkpoint is a clear error and is left as it was
     score_ckpt = run_dir / "checkpoints" / "score_model.pt"
     score_ckpt.write_bytes(b"garbage")
     with pytest.raises(ValueError, match="corrupt"):
-        recipe.run(_cfg(run_dir, "resume=true"))
+        recipe.run(_cfg(run_dir, "resume=true", "flow.threshold=1.01"))
     assert score_ckpt.read_bytes() == b"garbage"
 
 

@@ -49,11 +49,22 @@ class DiffusionProcess:
     Args:
         num_train_timesteps: ``T`` (paper: 1000).
         beta_schedule: a diffusers schedule name (default cosine, ``"squaredcos_cap_v2"``).
+        timestep_spacing: diffusers' spacing of the sampler's timesteps. ``"leading"`` (default)
+            starts a ``k``-step sampler at ``T - T/k``; ``"trailing"`` starts at ``T - 1``, where
+            the cosine schedule's ``abar ~ 2e-9``: the ``x_0`` an epsilon-model implies there is its
+            error times ``1/sqrt(abar) ~ 2e4``, which the clip pins to the data bounds and the chain
+            never recovers from (measured on button-press-v3, cpu preset, DDPM-25, 8 top-return
+            conditions of length 500: generated lengths 3-54 with "trailing", 5 of 8 full-length
+            with "leading"). Trailing spacing is meant for zero-terminal-SNR *v*-prediction models.
     """
 
-    def __init__(self, *, num_train_timesteps: int = 1000, beta_schedule: str = "squaredcos_cap_v2") -> None:
+    def __init__(self, *, num_train_timesteps: int = 1000, beta_schedule: str = "squaredcos_cap_v2",
+                 timestep_spacing: str = "leading") -> None:
+        if timestep_spacing not in ("leading", "trailing", "linspace"):
+            raise ValueError(f"timestep_spacing must be 'leading', 'trailing' or 'linspace', got {timestep_spacing!r}")
         self.num_train_timesteps = int(num_train_timesteps)
         self.beta_schedule = beta_schedule
+        self.timestep_spacing = timestep_spacing
         self.scheduler = DDPMScheduler(
             num_train_timesteps=self.num_train_timesteps,
             beta_schedule=beta_schedule,
@@ -64,7 +75,8 @@ class DiffusionProcess:
 
     def config(self) -> dict:
         """JSON-able constructor arguments."""
-        return {"num_train_timesteps": self.num_train_timesteps, "beta_schedule": self.beta_schedule}
+        return {"num_train_timesteps": self.num_train_timesteps, "beta_schedule": self.beta_schedule,
+                "timestep_spacing": self.timestep_spacing}
 
     def sample_timesteps(self, batch: int, *, device: torch.device | str | None = None,
                          generator: torch.Generator | None = None) -> torch.Tensor:
@@ -88,12 +100,13 @@ class DiffusionProcess:
                       prediction_type="epsilon")
         if sampler == "ddpm":
             sched = DDPMScheduler(**common, variance_type="fixed_small", clip_sample=False,
-                                  timestep_spacing="trailing")
+                                  timestep_spacing=self.timestep_spacing)
         elif sampler == "ddim":
-            sched = DDIMScheduler(**common, clip_sample=False, set_alpha_to_one=True, timestep_spacing="trailing")
+            sched = DDIMScheduler(**common, clip_sample=False, set_alpha_to_one=True,
+                                  timestep_spacing=self.timestep_spacing)
         else:
             sched = DPMSolverMultistepScheduler(**common, algorithm_type="dpmsolver++", solver_order=2,
-                                                lower_order_final=True)
+                                                lower_order_final=True, timestep_spacing=self.timestep_spacing)
         sched.set_timesteps(steps)
         return sched
 
