@@ -11,7 +11,9 @@ commit, machine info and results. Not a test.
 Usage::
 
     python bench/diffusion_speed.py --horizon 500 --obs-dim 39 --action-dim 4 --static-dims 24 \
-        --presets cpu paper --train-steps 5 --paper-train-steps 2 --sample-batch 16
+        --presets cpu --train-steps 5 --sample-batch 8 --tag cpu_H500
+    python bench/diffusion_speed.py --presets paper --paper-train-steps 1 --sample-batch 2 \
+        --samplers dpm++:3 --no-bf16 --tag paper_H500
 """
 from __future__ import annotations
 
@@ -66,7 +68,7 @@ def bench_preset(preset: str, args, *, bf16: bool, train_steps: int) -> dict:
     calls = []
     hook = diffuser.ema.module["backbone"].register_forward_hook(lambda m, a, o: calls.append(a[0].shape[0]))
     cond = TensorDict({"condition": data[: args.sample_batch]}, batch_size=[args.sample_batch])
-    samplers = [("ddpm", 50), ("dpm++", 20)] + ([("ddpm", args.ddpm_steps)] if args.ddpm_steps else [])
+    samplers = [(spec.split(":")[0], int(spec.split(":")[1])) for spec in args.samplers]
     result["sampling"] = []
     for name, steps in samplers:
         calls.clear()
@@ -95,7 +97,8 @@ def main() -> None:
     parser.add_argument("--train-steps", type=int, default=5)
     parser.add_argument("--paper-train-steps", type=int, default=2)
     parser.add_argument("--sample-batch", type=int, default=16)
-    parser.add_argument("--ddpm-steps", type=int, default=0, help="also time DDPM with this many steps (0: skip)")
+    parser.add_argument("--samplers", nargs="+", default=["ddpm:25", "ddpm:50", "dpm++:20"],
+                        help="sampler:steps to time (per-call cost x steps gives any other count)")
     parser.add_argument("--no-bf16", action="store_true")
     parser.add_argument("--threads", type=int, default=None)
     parser.add_argument("--device", default="cpu")
@@ -111,13 +114,14 @@ def main() -> None:
             res = bench_preset(preset, args, bf16=bf16, train_steps=steps)
             print(json.dumps(res), flush=True)
             results.append(res)
-    tag = args.tag or f"H{args.horizon}_{args.device}"
-    payload = {"benchmark": "diffusion_speed", "command": " ".join(sys.argv), "config": vars(args),
-               "git_commit": git_commit(), "machine": machine_info(), "results": results,
-               "created": time.strftime("%Y-%m-%dT%H:%M:%S")}
-    path = Path(__file__).resolve().parent / "results" / f"diffusion_speed_{tag}.json"
-    write_json(path, payload)
-    print(f"wrote {path}")
+            # rewritten after every measurement: partial results survive a long paper-preset run
+            tag = args.tag or f"H{args.horizon}_{args.device}"
+            payload = {"benchmark": "diffusion_speed", "command": " ".join(sys.argv), "config": vars(args),
+                       "git_commit": git_commit(), "machine": machine_info(), "results": results,
+                       "created": time.strftime("%Y-%m-%dT%H:%M:%S")}
+            path = Path(__file__).resolve().parent / "results" / f"diffusion_speed_{tag}.json"
+            write_json(path, payload)
+            print(f"wrote {path}", flush=True)
 
 
 if __name__ == "__main__":

@@ -67,7 +67,7 @@ def part_a(args, record: dict, write) -> None:
         task_out = {"num_trajectories": trajs.batch_size[0], "horizon": trajs.batch_size[1],
                     "success_rate": float(success.float().mean()), "dataset_seconds": round(data_s, 1),
                     "dataset_path": meta.get("path"), "teachers": {}}
-        for teacher in (ReturnTeacher(), SuccessTeacher()):
+        for teacher in [t for t in (ReturnTeacher(), SuccessTeacher()) if t.base_name in args.teachers]:
             per_seed = []
             for seed in args.seeds:
                 labels = make_scripted_labels(trajs, num_pairs=METAWORLD_NUM_LABELS, teacher=teacher, seed=seed)
@@ -144,6 +144,7 @@ def main() -> None:
     parser.add_argument("--part", default="ba", help="a (Meta-World), b (hopper PT labels), or both ('ab'/'ba')")
     parser.add_argument("--tasks", nargs="+", default=list(TASKS))
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    parser.add_argument("--teachers", nargs="+", default=["return", "success"], help="part a: return and/or success")
     parser.add_argument("--steps", type=int, default=300)
     parser.add_argument("--lr", type=float, default=1e-3)
     parser.add_argument("--num-cells", type=int, default=256)

@@ -188,7 +188,7 @@ class TemporalUnet(DenoiserBackbone):
         # Every level's skip is used, level 0's included: Janner et al.'s U-Net drops it, which leaves
         # the output only hidden*mults[0]/2 numbers per step (a stride-2 conv) to carry x_t -- an
         # eps-MSE floor of ~1 - that/D we measured at 0.85 for D = 44 (bench/results/
-        # diffusion_quality_button-press-v3.json). Here the full-resolution path carries hidden_dim.
+        # diffusion_quality_button-press-v3_old_unet.json). Here the full-resolution path carries hidden_dim.
         self.ups = nn.ModuleList()
         h_dim = dims[-1]
         for i in reversed(range(levels)):  # skip from level i, output at level i - 1 (level 0: none)
