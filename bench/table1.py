@@ -230,6 +230,11 @@ def render_table(cells: list[dict[str, Any]]) -> str:
     return "\n".join(lines).rstrip()
 
 
+def _gb(cell: dict[str, Any]) -> float | None:
+    mb = (cell.get("metrics", {}).get("machine") or {}).get("peak_rss_mb")
+    return mb / 1024 if isinstance(mb, (int, float)) else None
+
+
 def render_flow_table(cells: list[dict[str, Any]]) -> str:
     """FTB cells only: what the flow did (paper §4.3, Fig. 4 left) and what the run cost."""
     rows = [c for c in cells if c["method"] == "ftb" and isinstance(c.get("metrics", {}).get("flow"), dict)]
@@ -243,8 +248,8 @@ def render_flow_table(cells: list[dict[str, Any]]) -> str:
         "(s, a) pairs. `wall`: the whole cell, other jobs sharing the 2 cores.",
         "",
         "| task | teacher | seed | flow steps | accepted | valid / accept | score mean before → after | "
-        "true return mean before → after | true return max before → after | policy score | wall (min) |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "true return mean before → after | true return max before → after | policy score | wall (min) | peak RSS (GB) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
 
     def num(value: Any, fmt: str = "{:.1f}") -> str:
@@ -260,7 +265,8 @@ def render_flow_table(cells: list[dict[str, Any]]) -> str:
             f"{num(f.get('score_mean_before'))} → {num(f.get('score_mean_after'))} | "
             f"{num(f.get('true_return_mean_before'))} → {num(f.get('true_return_mean_after'))} | "
             f"{num(f.get('true_return_max_before'))} → {num(f.get('true_return_max_after'))} | "
-            f"{num(c.get('score'), '{:.2f}')} | {num(c.get('wall_time_s', 0) / 60)} |"
+            f"{num(c.get('score'), '{:.2f}')} | {num(c.get('wall_time_s', 0) / 60)} | "
+            f"{num(_gb(c), '{:.2f}')} |"
         )
     return "\n".join(lines)
 

@@ -219,4 +219,4 @@ def test_table1_markdown_between_markers(tmp_path):
                     "flow_stats": [{"valid_rate": 0.9, "accept_rate": 0.3}]}})
     table1.write_markdown(cells, md)
     section = md.read_text().split("<!-- table1:start -->")[1].split("<!-- table1:end -->")[0]
-    assert "| button-press-v3 | success | 0 | 2 | 37 | 0.90 / 0.30 | 10.0 → 12.5 | 100.0 → 140.0 | 300.0 → 320.0 | 1.00 | 20.0 |" in section
+    assert "| button-press-v3 | success | 0 | 2 | 37 | 0.90 / 0.30 | 10.0 → 12.5 | 100.0 → 140.0 | 300.0 → 320.0 | 1.00 | 20.0 | — |" in section

@@ -77,15 +77,24 @@ def _load_avg_1m() -> float | None:
         return None
 
 
+def _peak_rss_mb() -> float | None:
+    try:
+        import resource
+
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
+    except (ImportError, OSError):  # no ``resource`` on Windows
+        return None
+
+
 def machine_info() -> dict[str, Any]:
     """What the numbers of a run depend on: hardware, load and software versions.
 
     Returns:
         ``{"platform", "processor", "cpu", "cpu_count", "python", "torch", "threads",
-        "cuda", "load_avg_1m"}``: ``cpu`` is the CPU model name from ``/proc/cpuinfo``
+        "cuda", "load_avg_1m", "peak_rss_mb"}``: ``cpu`` is the CPU model name from ``/proc/cpuinfo``
         (``None`` where unavailable), ``threads`` torch's intra-op threads, ``cuda`` the
         name of CUDA device 0 or ``None``, ``load_avg_1m`` the 1-minute load average or
-        ``None``.
+        ``None``, ``peak_rss_mb`` this process's peak resident memory so far (MiB, Linux).
 
     Example:
         >>> from torchrl_ftb.provenance import machine_info
@@ -105,6 +114,7 @@ def machine_info() -> dict[str, Any]:
         "threads": torch.get_num_threads(),
         "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
         "load_avg_1m": _load_avg_1m(),
+        "peak_rss_mb": _peak_rss_mb(),
     }
 
 
