@@ -131,7 +131,7 @@ def test_ddpm_noise_std_is_correct():
         assert abs(x.std().item() - 0.5) < 0.03, (sampler, x.std().item())
 
 
-@pytest.mark.parametrize("sampler,steps", [("ddpm", 25), ("ddim", 20), ("dpm++", 10), ("dpm++", 20)])
+@pytest.mark.parametrize("sampler,steps", [("ddpm", 25), ("ddpm", 1000), ("ddim", 20), ("ddim", 50), ("dpm++", 10), ("dpm++", 20)])
 def test_samplers_with_exact_denoiser_land_on_data(sampler, steps):
     """Bayes-optimal eps of a finite set of variable-length trajectories (model space, with the
     diffuser's x0 clipping): every sampler must return (near-)copies of data points, with their
