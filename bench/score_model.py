@@ -35,11 +35,13 @@ def _summary(values: list[float]) -> dict:
     return {"mean": float(t.mean()), "std": float(t.std()) if len(values) > 1 else 0.0, "values": values}
 
 
-def _train(labels, obs_dim: int, act_dim: int, args, seed: int, *, eval_labels=None):
+def _train(labels, obs_dim: int, act_dim: int, args, seed: int, *, eval_labels=None, data=None):
     from torchrl_ftb.preference import ScoreModel, train_score_model
 
     model = ScoreModel(obs_dim, act_dim, num_cells=args.num_cells, num_layers=args.num_layers, seed=seed,
                        num_members=args.members)
+    if args.normalize_obs:
+        model.fit_normalizer(data if data is not None else labels["tau0"])
     start = time.perf_counter()
     out = train_score_model(model, labels, steps=args.steps, batch_size=256, lr=args.lr, eval_fraction=0.0,
                             eval_labels=eval_labels, seed=seed, progress=False)
@@ -72,7 +74,7 @@ def part_a(args, record: dict, write) -> None:
             for seed in args.seeds:
                 labels = make_scripted_labels(trajs, num_pairs=METAWORLD_NUM_LABELS, teacher=teacher, seed=seed)
                 fresh = make_scripted_labels(trajs, num_pairs=args.eval_pairs, teacher=teacher, seed=seed + 1000)
-                model, train_out = _train(labels, obs_dim, act_dim, args, seed)
+                model, train_out = _train(labels, obs_dim, act_dim, args, seed, data=trajs)
                 metrics = preference_metrics(model, trajs, true_returns=true_ret, success=success, labels=fresh)
                 per_seed.append({"seed": seed, "train": train_out, "label_ties": int((labels["label"] == 0.5).sum()),
                                  **metrics})
@@ -113,7 +115,7 @@ def part_b(args, record: dict, write) -> None:
         train = labels[kind]["train"]
         per_seed = []
         for seed in args.seeds:
-            model, train_out = _train(train, 11, 3, args, seed)
+            model, train_out = _train(train, 11, 3, args, seed, data=segments)
             row = {"seed": seed, "train": train_out,
                    "train_accuracy": pairwise_accuracy(model, train),
                    "eval_accuracy_human": pairwise_accuracy(model, labels["human"]["eval"]),
@@ -154,6 +156,8 @@ def main() -> None:
     parser.add_argument("--noise", type=float, default=1.0)
     parser.add_argument("--workers", type=int, default=1)
     parser.add_argument("--eval-pairs", type=int, default=300)
+    parser.add_argument("--normalize-obs", action="store_true",
+                        help="fit the score model's observation normaliser on the dataset before training")
     parser.add_argument("--no-plots", dest="plots", action="store_false")
     parser.add_argument("--out-dir", default=str(ROOT / "bench" / "results"))
     parser.add_argument("--tag", default="", help="suffix of the results file (variants side by side)")

@@ -90,7 +90,7 @@ def _diff_keys(a: Any, b: Any, prefix: str = "") -> list[str]:
         for k in sorted(set(a) | set(b), key=str):
             out += _diff_keys(a.get(k, "<missing>"), b.get(k, "<missing>"), f"{prefix}{k}.")
         return out
-    if b == "<missing>" and a in (None, {}, []):
+    if b == "<missing>" and (a is None or a is False or a == {} or a == []):
         return []
     return [] if a == b else [f"{prefix[:-1]}: {b!r} -> {a!r}"]
 
@@ -182,7 +182,7 @@ def _td_from_ckpt(d: dict, path: Path, key: str) -> TensorDict:
 # ------
 
 
-def stage_score_model(cfg, run: RunDir, labels, obs_dim, act_dim, device, logger) -> ScoreModel:
+def stage_score_model(cfg, run: RunDir, trajs, labels, obs_dim, act_dim, device, logger) -> ScoreModel:
     sm_cfg = cfg.score_model
     model = ScoreModel(obs_dim, act_dim, num_cells=int(sm_cfg.num_cells), num_layers=int(sm_cfg.num_layers),
                        gamma=float(sm_cfg.gamma), seed=int(cfg.seed), device=device)
@@ -194,6 +194,8 @@ def stage_score_model(cfg, run: RunDir, labels, obs_dim, act_dim, device, logger
         except (RuntimeError, KeyError) as err:
             raise ValueError(f"{path}: score model checkpoint does not match the config ({err})") from err
         return model
+    if sm_cfg.get("normalize_observations"):
+        model.fit_normalizer(trajs)  # on the whole dataset, not the labelled trajectories
     out = train_score_model(
         model, labels, steps=int(sm_cfg.steps), batch_size=int(sm_cfg.batch_size), lr=float(sm_cfg.lr),
         eval_fraction=float(sm_cfg.eval_fraction), seed=int(cfg.seed), logger=logger,
@@ -440,7 +442,7 @@ def run(cfg: DictConfig) -> dict:
 
     # 3. score model, 4. blocks ---------------------------------------------------------
     t0 = time.perf_counter()
-    model = stage_score_model(cfg, run_dir, labels, obs_dim, act_dim, device, logger)
+    model = stage_score_model(cfg, run_dir, trajs, labels, obs_dim, act_dim, device, logger)
     timed("score_model", t0)
     t0 = time.perf_counter()
     scores, block_ids = stage_blocks(cfg, run_dir, trajs, model)

@@ -138,6 +138,37 @@ def test_score_trajectories_chunks_no_grad_and_checkpoint(tmp_path, toy):
     torch.testing.assert_close(score_trajectories(model, as64), full)
 
 
+def test_observation_normalizer_makes_training_invariant_to_obs_units(tmp_path, toy):
+    """With the normaliser fitted on the data, rescaling/shifting the observations (other units)
+    gives the same trained model's ranking; the normaliser is saved, and a state dict written
+    before it existed loads as an identity normaliser."""
+    labels = scripted_labels(toy, 30, seed=1)
+    shifted = toy.select(*KEYS).clone()
+    shifted["observation"] = shifted["observation"] * 50.0 + 7.0
+    shifted_labels = labels.clone()
+    for k in ("tau0", "tau1"):
+        shifted_labels[k, "observation"] = labels[k, "observation"] * 50.0 + 7.0
+    scores = []
+    for data, lab in ((toy, labels), (shifted, shifted_labels)):
+        model = ScoreModel(3, 2, num_cells=32, seed=0).fit_normalizer(data)
+        assert model.normalizer_fitted
+        train_score_model(model, lab, steps=40, lr=5e-3, eval_fraction=0.0, seed=0, progress=False)
+        scores.append(score_trajectories(model, data))
+    torch.testing.assert_close(scores[0], scores[1], rtol=1e-3, atol=1e-3)
+    torch.save(model.state_dict(), tmp_path / "score.pt")
+    loaded = ScoreModel(3, 2, num_cells=32, seed=1)
+    loaded.load_state_dict(torch.load(tmp_path / "score.pt", weights_only=True))
+    torch.testing.assert_close(score_trajectories(loaded, shifted), scores[1])
+    old = {k: v for k, v in model.state_dict().items() if "obs_" not in k}
+    legacy = ScoreModel(3, 2, num_cells=32, seed=1)
+    legacy.load_state_dict(old)
+    assert not legacy.normalizer_fitted
+    with pytest.raises(ValueError, match="NaN"):
+        bad = toy.select(*KEYS).clone()
+        bad["observation"][0, 0, 0] = float("nan")
+        ScoreModel(3, 2, num_cells=8).fit_normalizer(bad)
+
+
 def test_bad_dims_raise(toy):
     with pytest.raises(ValueError, match="observation dim"):
         ScoreModel(4, 2, num_cells=8).score(toy)

@@ -105,10 +105,12 @@ def train_reward_model(
     """Train the preference stage's :class:`~torchrl_ftb.preference.ScoreModel` on ``labels``.
 
     Args:
-        trajs: the dataset (only its dimensions are read).
+        trajs: the dataset (its dimensions, and its observations for the normaliser).
         labels: preference labels (docs/conventions.md).
         num_members: ensemble size (1: IQL + r_ψ / 10%BC by score; > 1: OPRL).
-        model: extra ``ScoreModel`` keyword arguments (``num_cells``, ``num_layers``, ``gamma``).
+        model: extra ``ScoreModel`` keyword arguments (``num_cells``, ``num_layers``, ``gamma``)
+            and ``normalize_observations`` (fit the model's observation normaliser on ``trajs``
+            before training; default off).
         training: ``train_score_model`` keyword arguments (``steps``, ``lr``, ``batch_size`` ...).
         seed: initialisation and training seed.
 
@@ -119,8 +121,11 @@ def train_reward_model(
     from torchrl_ftb.preference import ScoreModel, train_score_model
 
     obs_dim, act_dim = trajs.get("observation").shape[-1], trajs.get("action").shape[-1]
-    score_model = ScoreModel(obs_dim, act_dim, **dict(model or {}), num_members=int(num_members),
-                             seed=seed, device=device)
+    model = dict(model or {})
+    normalize = bool(model.pop("normalize_observations", False))
+    score_model = ScoreModel(obs_dim, act_dim, **model, num_members=int(num_members), seed=seed, device=device)
+    if normalize:
+        score_model.fit_normalizer(trajs)
     stats = train_score_model(score_model, labels, **dict(training or {}), seed=seed, logger=logger,
                               progress=progress, device=device)
     score_model.eval()

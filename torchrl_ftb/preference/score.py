@@ -74,6 +74,15 @@ class _StepReward(nn.Module):
         self.net = EnsembleModule(member, num_copies=num_members) if num_members > 1 else member
         self.observation_dim = observation_dim
         self.action_dim = action_dim
+        # observation normaliser (identity until ScoreModel.fit_normalizer); saved with the model
+        self.register_buffer("obs_loc", torch.zeros(observation_dim, device=device))
+        self.register_buffer("obs_scale", torch.ones(observation_dim, device=device))
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        # checkpoints written before the normaliser existed load as un-normalised models
+        for name, fill in (("obs_loc", torch.zeros_like), ("obs_scale", torch.ones_like)):
+            state_dict.setdefault(prefix + name, fill(getattr(self, name)))
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def members(self, observation: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         if observation.shape[-1] != self.observation_dim or action.shape[-1] != self.action_dim:
@@ -82,8 +91,9 @@ class _StepReward(nn.Module):
                 f"{self.action_dim}, got {observation.shape[-1]} and {action.shape[-1]}"
             )
         dtype = next(self.parameters()).dtype  # e.g. float64 label files -> float32 weights
+        observation = (observation.to(dtype) - self.obs_loc.to(dtype)) / self.obs_scale.to(dtype)
         td = TensorDict(
-            {"observation": observation.to(dtype), "action": action.to(dtype)},
+            {"observation": observation, "action": action.to(dtype)},
             batch_size=observation.shape[:-1],
         )
         reward = self.net(td).get("reward")
@@ -107,6 +117,11 @@ class ScoreModel(TensorDictModuleBase):
       (e.g. labels ``[M]`` with ``"tau0"`` ``[M, L]``) the outputs are written in place.
       Use :meth:`with_prefix` to get such a view sharing the parameters, or call
       :meth:`score` on any sub-TensorDict.
+
+    ``r_psi`` reads the observation through a per-dimension normaliser ``(obs - loc) / scale``
+    stored as buffers (identity by default; :meth:`fit_normalizer` fits it on a dataset's valid
+    steps, so every caller — labels, blocks, flow filter, reward relabelling — sees the same
+    function of the raw observation).
 
     Args:
         observation_dim: size of ``observation``.
@@ -207,6 +222,42 @@ class ScoreModel(TensorDictModuleBase):
     @property
     def num_members(self) -> int:
         return self.reward_module.module.num_members
+
+    @property
+    def normalizer_fitted(self) -> bool:
+        """Whether the observation normaliser differs from the identity."""
+        step = self.reward_module.module
+        return bool(step.obs_loc.ne(0).any() or step.obs_scale.ne(1).any())
+
+    @torch.no_grad()
+    def fit_normalizer(self, trajs: TensorDictBase, *, min_scale: float = 1e-3) -> "ScoreModel":
+        """Fit the observation normaliser on the valid steps of a trajectory batch; returns self.
+
+        ``loc`` is the per-dimension mean, ``scale`` the standard deviation floored at
+        ``min_scale`` (constant dimensions, e.g. Meta-World's zero slots, stay finite).
+        Fit it on the *dataset* (not on the few labelled trajectories) before training.
+
+        Example:
+            >>> from torchrl_ftb.testing import make_toy_dataset
+            >>> trajs = make_toy_dataset(num_trajectories=8, horizon=8, seed=0)
+            >>> ScoreModel(3, 2, num_cells=8).fit_normalizer(trajs).normalizer_fitted
+            True
+        """
+        obs_key, _, mask_key = self._rel_keys
+        mask = trajs.get(mask_key)
+        if mask.dtype != torch.bool or not bool(mask.any()):
+            raise ValueError(f"ScoreModel.fit_normalizer: {mask_key!r} must be a bool mask with a valid step")
+        obs = trajs.get(obs_key)[mask].float()
+        step = self.reward_module.module
+        if obs.shape[-1] != step.observation_dim:
+            raise ValueError(f"ScoreModel.fit_normalizer: observation dim {obs.shape[-1]}, model expects "
+                             f"{step.observation_dim}")
+        if not bool(torch.isfinite(obs).all()):
+            raise ValueError("ScoreModel.fit_normalizer: observations contain NaN or inf")
+        std = obs.std(0, unbiased=False) if obs.shape[0] > 1 else torch.zeros_like(obs[0])
+        step.obs_loc.copy_(obs.mean(0))
+        step.obs_scale.copy_(std.clamp_min(float(min_scale)))
+        return self
 
     # -- maths --------------------------------------------------------------------------
     def step_rewards(self, trajs: TensorDictBase) -> torch.Tensor:
