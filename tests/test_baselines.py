@@ -220,3 +220,29 @@ def test_table1_markdown_between_markers(tmp_path):
     table1.write_markdown(cells, md)
     section = md.read_text().split("<!-- table1:start -->")[1].split("<!-- table1:end -->")[0]
     assert "| button-press-v3 | success | 0 | 2 | 37 | 0.90 / 0.30 | 10.0 → 12.5 | 100.0 → 140.0 | 300.0 → 320.0 | 1.00 | 20.0 | — |" in section
+
+
+def test_learned_reward_with_observation_normaliser():
+    """``normalize_observations`` fits r_psi's normaliser on the dataset, and the relabelling
+    transform then feeds raw observations through it (rewards unchanged by an obs offset)."""
+    from torchrl_ftb.baselines import train_reward_model
+
+    trajs = make_toy_dataset(num_trajectories=16, horizon=8, seed=0)
+    labels = make_scripted_labels(trajs, num_pairs=8, teacher=ReturnTeacher(), seed=0)
+    opts = dict(model={"num_cells": 16, "num_layers": 2, "normalize_observations": True},
+                training={"steps": 5, "eval_fraction": 0.0}, progress=False)
+    model, _ = train_reward_model(trajs, labels, **opts)
+    assert model.normalizer_fitted
+    shifted, shifted_labels = trajs.clone(), labels.clone()
+    shifted["observation"] = trajs["observation"] + 100.0
+    for k in ("tau0", "tau1"):
+        shifted_labels[k, "observation"] = labels[k, "observation"] + 100.0
+    model2, _ = train_reward_model(shifted, shifted_labels, **opts)
+    r1 = make_reward_transforms(trajs, reward_module=model.reward_module)[0]
+    r2 = make_reward_transforms(shifted, reward_module=model2.reward_module)[0]
+    b1 = make_offline_buffer(trajs, batch_size=32, seed=0, transforms=[r1]).sample()
+    b2 = make_offline_buffer(shifted, batch_size=32, seed=0, transforms=[r2]).sample()
+    torch.testing.assert_close(b1["next", "reward"], b2["next", "reward"], atol=1e-3, rtol=1e-3)
+    plain, _ = train_reward_model(trajs, labels, model={"num_cells": 16, "num_layers": 2},
+                                  training={"steps": 5, "eval_fraction": 0.0}, progress=False)
+    assert not plain.normalizer_fitted
