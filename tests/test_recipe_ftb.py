@@ -98,11 +98,21 @@ def test_kill_during_diffuser_training_then_resume_end_to_end(tmp_path):
     with pytest.raises(ValueError, match="not a stage"):
         recipe.run(_cfg(run_dir, "resume=true", "redo_from=sampling"))
 
-    # a corrupt checkpoint is a clear error and is left as it was
+    # the score model's observation normaliser: off by default (identity buffers saved), on
+    # when asked (redo_from=score_model lets that section change)
     score_ckpt = run_dir / "checkpoints" / "score_model.pt"
+    state = torch.load(score_ckpt, weights_only=True)["state_dict"]
+    scale_key = next(k for k in state if k.endswith("obs_scale"))
+    assert bool((state[scale_key] == 1).all())
+    recipe.run(_cfg(run_dir, "resume=true", "redo_from=score_model", "score_model.normalize_observations=true",
+                    "flow.threshold=1.01"))
+    assert not bool((torch.load(score_ckpt, weights_only=True)["state_dict"][scale_key] == 1).all())
+
+    # a corrupt checkpoint is a clear error and is left as it was
     score_ckpt.write_bytes(b"garbage")
     with pytest.raises(ValueError, match="corrupt"):
-        recipe.run(_cfg(run_dir, "resume=true", "flow.threshold=1.01"))
+        recipe.run(_cfg(run_dir, "resume=true", "flow.threshold=1.01",
+                        "score_model.normalize_observations=true"))
     assert score_ckpt.read_bytes() == b"garbage"
 
 
