@@ -35,13 +35,13 @@ def _summary(values: list[float]) -> dict:
     return {"mean": float(t.mean()), "std": float(t.std()) if len(values) > 1 else 0.0, "values": values}
 
 
-def _train(labels, obs_dim: int, act_dim: int, args, seed: int, *, eval_labels=None, data=None):
+def _train(labels, obs_dim: int, act_dim: int, args, seed: int, *, data, eval_labels=None):
     from torchrl_ftb.preference import ScoreModel, train_score_model
 
     model = ScoreModel(obs_dim, act_dim, num_cells=args.num_cells, num_layers=args.num_layers, seed=seed,
                        num_members=args.members)
     if args.normalize_obs:
-        model.fit_normalizer(data if data is not None else labels["tau0"])
+        model.fit_normalizer(data)
     start = time.perf_counter()
     out = train_score_model(model, labels, steps=args.steps, batch_size=256, lr=args.lr, eval_fraction=0.0,
                             eval_labels=eval_labels, seed=seed, progress=False)
