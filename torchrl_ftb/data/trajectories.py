@@ -341,3 +341,24 @@ def load_trajectories(
     if (path / "per_trajectory").exists():
         per = TensorDict.load_memmap(path / "per_trajectory").to_tensordict()
     return td, meta, per
+
+
+def observation_statistics(observation: torch.Tensor, *, eps: float = 1e-3) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-dimension mean and standard deviation floored at ``eps``, of observations ``[T, obs_dim]``.
+
+    The one observation z-score of the package (score model, BC actor, baselines). The floor
+    keeps constant dimensions (e.g. Meta-World's zero-padded slots) finite; a floor rather than
+    ``std + eps`` keeps ``(obs - loc) / scale`` invariant to the observations' units.
+
+    Example:
+        >>> loc, scale = observation_statistics(torch.tensor([[0.0, 1.0], [2.0, 1.0]]))
+        >>> loc.tolist(), [round(v, 3) for v in scale.tolist()]
+        ([1.0, 1.0], [1.0, 0.001])
+    """
+    if observation.ndim != 2 or observation.shape[0] < 1:
+        raise ValueError(f"observation_statistics: expected [T, obs_dim] with T >= 1, got {list(observation.shape)}")
+    observation = observation.float()
+    if not bool(torch.isfinite(observation).all()):
+        raise ValueError("observation_statistics: observations contain NaN or inf")
+    std = observation.std(0, unbiased=False) if observation.shape[0] > 1 else torch.zeros_like(observation[0])
+    return observation.mean(0), std.clamp_min(eps)

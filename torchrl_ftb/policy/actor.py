@@ -23,26 +23,9 @@ from torch import nn
 from torchrl.data import Bounded
 from torchrl.modules import MLP, Actor
 
+from torchrl_ftb.data.trajectories import observation_statistics  # re-exported (one home: data)
+
 __all__ = ["ObservationNormalizer", "SquashedMLP", "make_bc_actor", "observation_statistics"]
-
-
-def observation_statistics(observation: torch.Tensor, *, eps: float = 1e-3) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per-dimension mean and ``std + eps`` of flat observations ``[T, obs_dim]``.
-
-    ``eps`` keeps constant dimensions (e.g. Meta-World's zero-padded slots) from blowing up.
-
-    Example:
-        >>> loc, scale = observation_statistics(torch.tensor([[0.0, 1.0], [2.0, 1.0]]))
-        >>> loc.tolist(), [round(v, 3) for v in scale.tolist()]
-        ([1.0, 1.0], [1.001, 0.001])
-    """
-    if observation.ndim != 2 or observation.shape[0] < 1:
-        raise ValueError(f"observation_statistics: expected [T, obs_dim] with T >= 1, got {list(observation.shape)}")
-    observation = observation.float()
-    if not bool(torch.isfinite(observation).all()):
-        raise ValueError("observation_statistics: observations contain NaN or inf")
-    std = observation.std(0, unbiased=False) if observation.shape[0] > 1 else torch.zeros_like(observation[0])
-    return observation.mean(0), std + eps
 
 
 class ObservationNormalizer(nn.Module):

@@ -31,6 +31,8 @@ from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.modules import MLP
 
+from torchrl_ftb.data.trajectories import observation_statistics
+
 __all__ = ["ScoreModel", "score_trajectories"]
 
 
@@ -230,11 +232,12 @@ class ScoreModel(TensorDictModuleBase):
         return bool(step.obs_loc.ne(0).any() or step.obs_scale.ne(1).any())
 
     @torch.no_grad()
-    def fit_normalizer(self, trajs: TensorDictBase, *, min_scale: float = 1e-3) -> "ScoreModel":
+    def fit_normalizer(self, trajs: TensorDictBase, *, eps: float = 1e-3) -> "ScoreModel":
         """Fit the observation normaliser on the valid steps of a trajectory batch; returns self.
 
-        ``loc`` is the per-dimension mean, ``scale`` the standard deviation floored at
-        ``min_scale`` (constant dimensions, e.g. Meta-World's zero slots, stay finite).
+        ``loc``/``scale`` are :func:`torchrl_ftb.data.observation_statistics` (mean and
+        standard deviation floored at ``eps``, the statistics the BC actor uses: constant
+        dimensions, e.g. Meta-World's zero slots, stay finite).
         Fit it on the *dataset* (not on the few labelled trajectories) before training.
 
         Example:
@@ -254,9 +257,9 @@ class ScoreModel(TensorDictModuleBase):
                              f"{step.observation_dim}")
         if not bool(torch.isfinite(obs).all()):
             raise ValueError("ScoreModel.fit_normalizer: observations contain NaN or inf")
-        std = obs.std(0, unbiased=False) if obs.shape[0] > 1 else torch.zeros_like(obs[0])
-        step.obs_loc.copy_(obs.mean(0))
-        step.obs_scale.copy_(std.clamp_min(float(min_scale)))
+        loc, scale = observation_statistics(obs, eps=eps)
+        step.obs_loc.copy_(loc)
+        step.obs_scale.copy_(scale)
         return self
 
     # -- maths --------------------------------------------------------------------------
