@@ -68,6 +68,9 @@ STAGES = ("dataset", "labels", "score_model", "blocks", "diffuser", "flow", "bc"
 # config entries that may change between a killed run and its resume
 RESUME_FREE_KEYS = ("resume", "overwrite", "redo_from", "progress", "logger", "device", "run_dir", "hydra")
 #: what each stage leaves under ``checkpoints/`` (removed by ``redo_from``)
+#: entries of another stage's section that only a later stage reads (free when that one is redone):
+#: the diffuser's sampling settings are used by the flow only
+STAGE_OWNED_KEYS = {"flow": (("diffuser", "sampler"), ("diffuser", "sample_steps"), ("diffuser", "guidance"))}
 STAGE_CHECKPOINTS = {"labels": ("labels",), "score_model": ("score_model.pt",), "blocks": ("blocks.pt",),
                      "diffuser": ("diffuser",), "flow": ("flow.pt",), "bc": ("bc.pt",)}
 
@@ -82,17 +85,32 @@ def _comparable(cfg: DictConfig) -> dict:
     return {k: v for k, v in full.items() if k not in RESUME_FREE_KEYS}
 
 
+#: options added after runs were saved, with the value that reproduces the older behaviour
+_ADDED_OPTION_NOOPS = {"score_model.num_members": 1, "flow.ensemble_rule": "mean"}
+
+
 def _diff_keys(a: Any, b: Any, prefix: str = "") -> list[str]:
     """Differences ``old -> new`` between config ``a`` (new) and ``b`` (saved); a key the saved
-    config lacks matches an empty new value (an option added later, left at its no-op default)."""
+    config lacks matches an empty new value or its ``_ADDED_OPTION_NOOPS`` entry (an option
+    added later, left at its no-op default)."""
     if isinstance(a, dict) and isinstance(b, dict):
         out = []
         for k in sorted(set(a) | set(b), key=str):
             out += _diff_keys(a.get(k, "<missing>"), b.get(k, "<missing>"), f"{prefix}{k}.")
         return out
-    if b == "<missing>" and (a is None or a is False or a == {} or a == []):
+    if b == "<missing>" and (a is None or a is False or a == {} or a == []
+                             or _ADDED_OPTION_NOOPS.get(prefix[:-1], "<none>") == a):
         return []
     return [] if a == b else [f"{prefix[:-1]}: {b!r} -> {a!r}"]
+
+
+def _drop_keys(config: dict, keys: list[tuple[str, str]]) -> dict:
+    """``config`` without the ``(section, entry)`` pairs in ``keys`` (sections copied, not mutated)."""
+    out = dict(config)
+    for section, entry in keys:
+        if isinstance(out.get(section), dict):
+            out[section] = {k: v for k, v in out[section].items() if k != entry}
+    return out
 
 
 class RunDir:
@@ -137,8 +155,10 @@ class RunDir:
             old = OmegaConf.to_container(OmegaConf.load(self.config_file), resolve=True)
             # the config sections of redone stages may change (that is what redo_from is for)
             free = set(RESUME_FREE_KEYS) | (set(STAGES[STAGES.index(redo):]) if redo is not None else set())
-            old = {k: v for k, v in old.items() if k not in free}
-            diff = _diff_keys({k: v for k, v in _comparable(cfg).items() if k not in free}, old)
+            owned = [key for stage in free for key in STAGE_OWNED_KEYS.get(stage, ())]
+            old = _drop_keys({k: v for k, v in old.items() if k not in free}, owned)
+            new_cfg = _drop_keys({k: v for k, v in _comparable(cfg).items() if k not in free}, owned)
+            diff = _diff_keys(new_cfg, old)
             if diff:
                 raise ValueError(f"{self.config_file}: resume=true with a different config: " + "; ".join(diff))
         self.path.mkdir(parents=True, exist_ok=True)
@@ -185,7 +205,8 @@ def _td_from_ckpt(d: dict, path: Path, key: str) -> TensorDict:
 def stage_score_model(cfg, run: RunDir, trajs, labels, obs_dim, act_dim, device, logger) -> ScoreModel:
     sm_cfg = cfg.score_model
     model = ScoreModel(obs_dim, act_dim, num_cells=int(sm_cfg.num_cells), num_layers=int(sm_cfg.num_layers),
-                       gamma=float(sm_cfg.gamma), seed=int(cfg.seed), device=device)
+                       gamma=float(sm_cfg.gamma), num_members=int(sm_cfg.get("num_members", 1)),
+                       seed=int(cfg.seed), device=device)
     path = run.ckpt / "score_model.pt"
     if run.done("score_model"):
         ckpt = _load_ckpt(path, "torchrl_ftb.score_model")
@@ -289,7 +310,8 @@ def stage_flow(cfg, run: RunDir, trajs, scores, block_ids, sampler, model, true_
         min_flow_steps=int(f.min_flow_steps), early_stop_fraction=float(f.early_stop_fraction),
         max_abs_z=float(f.max_abs_z), action_tolerance=float(f.action_tolerance),
         min_length=None if f.min_length is None else int(f.min_length),
-        true_reward_fn=true_reward_fn, batch_size=int(f.batch_size), seed=int(cfg.seed), logger=logger,
+        true_reward_fn=true_reward_fn, batch_size=int(f.batch_size), seed=int(cfg.seed),
+        ensemble_rule=str(f.get("ensemble_rule", "mean")), logger=logger,
         progress=bool(cfg.progress),
     )
     res = flow(trajs, scores=scores, block_ids=block_ids)

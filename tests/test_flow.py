@@ -17,6 +17,7 @@ from torchrl_ftb.flow import (
     normalized_scores,
     trajectory_validity,
 )
+from torchrl_ftb.preference import ScoreModel
 from torchrl_ftb.testing import make_toy_dataset, toy_reward
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -131,6 +132,35 @@ def test_flow_rejects_invalid_samples_and_stops_early():
         FlowToBetter(_shift_sampler(), _sum_ax, top_k=31, flow_steps=1, progress=False)(data)
     with pytest.raises(ValueError, match="num_blocks"):
         FlowToBetter(_shift_sampler(), _sum_ax, top_k=3)
+
+
+class _TwoMembers(ScoreModel):
+    """A 2-member "ensemble": member 0 scores x-actions (what the sampler pushes up), member 1
+    y-actions (untouched by it): the members disagree about every sample."""
+
+    def __init__(self):
+        super().__init__(3, 2, num_cells=4, num_members=2)
+
+    def score(self, trajs, *, members=False):
+        m = trajs["mask"]
+        per = torch.stack([(trajs["action"][..., 0] * m).sum(-1), (trajs["action"][..., 1] * m).sum(-1)])
+        return per if members else per.mean(0)
+
+
+def test_ensemble_rule_all_rejects_what_one_member_does_not_confirm():
+    data = make_toy_dataset(num_trajectories=30, horizon=H, seed=4)
+    kw = dict(top_k=6, threshold=1.0, flow_steps=2, progress=False, early_stop_fraction=0.0,
+              true_reward_fn=toy_reward)
+    mean_rule = FlowToBetter(_shift_sampler(0.3), _TwoMembers(), **kw)(data)
+    assert mean_rule.generated.batch_size[0] > 0  # the mean score rises with member 0
+    assert "accepted_true_gain_mean" in mean_rule.stats[0]
+    all_rule = FlowToBetter(_shift_sampler(0.3), _TwoMembers(), ensemble_rule="all", **kw)(data)
+    assert all_rule.generated.batch_size[0] == 0  # member 1 never sees an improvement
+    assert torch.equal(all_rule.scores, all_rule.original_scores)
+    with pytest.raises(ValueError, match="ensemble"):
+        FlowToBetter(_shift_sampler(), _sum_ax, ensemble_rule="all", **kw)
+    with pytest.raises(ValueError, match="ensemble_rule"):
+        FlowToBetter(_shift_sampler(), _sum_ax, ensemble_rule="min", **kw)
 
 
 def test_adaptive_zero_steps_warns_and_uses_floor():

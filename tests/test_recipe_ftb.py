@@ -89,12 +89,15 @@ def test_kill_during_diffuser_training_then_resume_end_to_end(tmp_path):
     # redo_from: the flow (with a changed flow setting) and later stages are redone, the
     # diffuser and earlier stages are loaded, not retrained
     diffuser_mtime = ckpt.stat().st_mtime_ns
-    redone = recipe.run(_cfg(run_dir, "resume=true", "redo_from=flow", "flow.threshold=1.01"))
+    redone = recipe.run(_cfg(run_dir, "resume=true", "redo_from=flow", "flow.threshold=1.01",
+                             "diffuser.guidance=2.0"))  # sampling settings belong to the flow stage
     assert ckpt.stat().st_mtime_ns == diffuser_mtime
     assert redone["flow"]["threshold"] == 1.01 and metrics["flow"]["threshold"] != 1.01
     assert json.loads((run_dir / "stages.json").read_text())["eval"]["done"]
     with pytest.raises(ValueError, match="different config"):  # earlier stages' settings still locked
         recipe.run(_cfg(run_dir, "resume=true", "redo_from=flow", "diffuser.steps=41"))
+    with pytest.raises(ValueError, match="guidance"):  # ... and the flow's, unless the flow is redone
+        recipe.run(_cfg(run_dir, "resume=true", "redo_from=bc", "flow.threshold=1.01"))
     with pytest.raises(ValueError, match="not a stage"):
         recipe.run(_cfg(run_dir, "resume=true", "redo_from=sampling"))
 
@@ -104,15 +107,19 @@ def test_kill_during_diffuser_training_then_resume_end_to_end(tmp_path):
     state = torch.load(score_ckpt, weights_only=True)["state_dict"]
     scale_key = next(k for k in state if k.endswith("obs_scale"))
     assert bool((state[scale_key] == 1).all())
-    recipe.run(_cfg(run_dir, "resume=true", "redo_from=score_model", "score_model.normalize_observations=true",
-                    "flow.threshold=1.01"))
-    assert not bool((torch.load(score_ckpt, weights_only=True)["state_dict"][scale_key] == 1).all())
+    # ... and a 2-member ensemble with the pessimistic flow filter (every member must agree)
+    ens = ("score_model.num_members=2", "flow.ensemble_rule=all")
+    out = recipe.run(_cfg(run_dir, "resume=true", "redo_from=score_model", "score_model.normalize_observations=true",
+                          "flow.threshold=1.01", *ens))
+    saved = torch.load(score_ckpt, weights_only=True)
+    assert not bool((saved["state_dict"][scale_key] == 1).all())
+    assert saved["hparams"]["num_members"] == 2 and out["flow"]["filter_members"] == 2
 
     # a corrupt checkpoint is a clear error and is left as it was
     score_ckpt.write_bytes(b"garbage")
     with pytest.raises(ValueError, match="corrupt"):
         recipe.run(_cfg(run_dir, "resume=true", "flow.threshold=1.01",
-                        "score_model.normalize_observations=true"))
+                        "score_model.normalize_observations=true", *ens))
     assert score_ckpt.read_bytes() == b"garbage"
 
 

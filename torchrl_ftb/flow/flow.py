@@ -15,6 +15,9 @@ condition (and joins the pool) only when it is **valid** and its score **improve
   scores, but it stays meaningful when raw scores are negative (a raw ratio flips sign
   there) and it does not mix γ = 0.99 (blocks) with γ = 1 (filter) as their code does.
   For ``ŝ_old <= 0`` (only the dataset minimum) any strict increase is accepted.
+  With an ensemble score model, ``ensemble_rule="all"`` asks every member's own normalised
+  score to improve (a pessimistic filter: a sample that exploits one member's extrapolation
+  off the data is rejected); ``"mean"`` (default) uses the ensemble-mean score.
 
 The number of flow steps is adaptive (App. B.4): ``t_flow = K - i`` with ``i`` the 1-based
 block of the lowest-scored top-``k`` trajectory, optionally capped (``max_flow_steps``) and
@@ -67,17 +70,24 @@ __all__ = [
 TRAJ_KEYS = ("observation", "action", "mask")
 
 
-def normalized_scores(scores: torch.Tensor, s_min: float, s_max: float) -> torch.Tensor:
+def normalized_scores(
+    scores: torch.Tensor, s_min: float | torch.Tensor, s_max: float | torch.Tensor
+) -> torch.Tensor:
     """``(s - s_min) / (s_max - s_min)``: the flow filter's score scale (dataset in [0, 1]).
+
+    ``s_min``/``s_max`` are floats or tensors broadcasting against ``scores`` (e.g. ``[C, 1]``
+    per ensemble member for ``[C, N]`` scores).
 
     Example:
         >>> normalized_scores(torch.tensor([-3.0, -2.0, -1.0]), -3.0, -1.0).tolist()
         [0.0, 0.5, 1.0]
     """
-    span = float(s_max) - float(s_min)
-    if not math.isfinite(span) or span <= 0:
-        raise ValueError(f"normalized_scores: need s_max > s_min (finite), got s_min={s_min}, s_max={s_max}")
-    return (scores - float(s_min)) / span
+    s_min = torch.as_tensor(s_min, dtype=scores.dtype)
+    span = torch.as_tensor(s_max, dtype=scores.dtype) - s_min
+    if not bool((torch.isfinite(span) & (span > 0)).all()):
+        raise ValueError(f"normalized_scores: need s_max > s_min (finite), got s_min={s_min.tolist()}, "
+                         f"s_max={torch.as_tensor(s_max).tolist()}")
+    return (scores - s_min) / span
 
 
 def improves(new_hat: torch.Tensor, old_hat: torch.Tensor, threshold: float) -> torch.Tensor:
@@ -227,6 +237,9 @@ class FlowToBetter(nn.Module):
         true_reward_fn: ``(observation, action) -> reward`` ground truth, for statistics only.
         batch_size: trajectories per sampler call (memory bound).
         seed: seeds the sampler noise (global RNG inside a fork).
+        ensemble_rule: ``"mean"`` (accept on the ensemble-mean score) or ``"all"`` (every
+            member's normalised score must improve; needs a :class:`ScoreModel` ensemble). The
+            final top-k is ranked by the mean score either way.
         logger: torchrl logger (``log_scalar``), optional; ``progress``: tqdm bar.
     """
 
@@ -250,6 +263,7 @@ class FlowToBetter(nn.Module):
         true_reward_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
         batch_size: int = 256,
         seed: int = 0,
+        ensemble_rule: str = "mean",
         logger: Any | None = None,
         progress: bool = True,
     ) -> None:
@@ -266,6 +280,10 @@ class FlowToBetter(nn.Module):
             raise ValueError(f"FlowToBetter: need 0 <= min_flow_steps <= max_flow_steps, got {min_flow_steps}, {max_flow_steps}")
         if batch_size < 1:
             raise ValueError(f"FlowToBetter: batch_size must be >= 1, got {batch_size}")
+        if ensemble_rule not in ("mean", "all"):
+            raise ValueError(f"FlowToBetter: ensemble_rule must be 'mean' or 'all', got {ensemble_rule!r}")
+        if ensemble_rule == "all" and getattr(score_model, "num_members", 1) < 2:
+            raise ValueError("FlowToBetter: ensemble_rule='all' needs a ScoreModel ensemble (num_members >= 2)")
         self.sampler = sampler
         self.score_model = score_model
         self.top_k = int(top_k)
@@ -283,16 +301,25 @@ class FlowToBetter(nn.Module):
         self.true_reward_fn = true_reward_fn
         self.batch_size = int(batch_size)
         self.seed = int(seed)
+        self.ensemble_rule = ensemble_rule
         self.logger = logger
         self.progress = progress
 
     # -- pieces ---------------------------------------------------------------------------
-    def score(self, trajs: TensorDictBase) -> torch.Tensor:
-        """Scores ``[N]`` of an ``[N, H]`` batch (no gradients)."""
+    def score(self, trajs: TensorDictBase, *, members: bool = False) -> torch.Tensor:
+        """Scores ``[N]`` of an ``[N, H]`` batch (no gradients); ``[C, N]`` per member if ``members``."""
         if isinstance(self.score_model, ScoreModel):
-            return score_trajectories(self.score_model, trajs, batch_size=max(self.batch_size, 1024))
+            return score_trajectories(self.score_model, trajs, batch_size=max(self.batch_size, 1024),
+                                      members=members)
         with torch.no_grad():
-            return torch.as_tensor(self.score_model(trajs)).reshape(trajs.batch_size[0])
+            out = torch.as_tensor(self.score_model(trajs)).reshape(trajs.batch_size[0])
+        return out[None] if members else out
+
+    def _filter_scores(self, trajs: TensorDictBase, mean_scores: torch.Tensor) -> torch.Tensor:
+        """``[C, N]`` float64 scores the acceptance rule compares (``[1, N]``: the mean score)."""
+        if self.ensemble_rule == "mean":
+            return mean_scores.to(torch.float64).cpu()[None]
+        return self.score(trajs, members=True).to(torch.float64).cpu()
 
     @torch.no_grad()
     def generate(self, conditions: TensorDictBase) -> TensorDict:
@@ -377,6 +404,10 @@ class FlowToBetter(nn.Module):
             block_ids = make_blocks(scores, self.num_blocks, seed=self.seed)
         s_min, s_max = float(scores.min()), float(scores.max())
         top_idx = scores.argsort(descending=True)[: self.top_k]
+        member_scores = self._filter_scores(data, scores)  # [C, N]: what the rule compares
+        m_min, m_max = member_scores.min(1, keepdim=True).values, member_scores.max(1, keepdim=True).values
+        if not bool((m_max > m_min).all()):
+            raise ValueError("FlowToBetter: every (member's) dataset score is equal; nothing to improve on")
         steps, adaptive = self._planned_steps(
             None if block_ids is None else torch.as_tensor(block_ids).cpu(), top_idx, scores
         )
@@ -388,6 +419,7 @@ class FlowToBetter(nn.Module):
 
         current = original.clone()
         cur_scores = scores[top_idx].clone()
+        cur_members = member_scores[:, top_idx].clone()
         pool, pool_scores, pool_steps = [], [], []
         stats: list[dict[str, float]] = []
         true0 = self._true_return(original)
@@ -399,22 +431,26 @@ class FlowToBetter(nn.Module):
             for step in bar:
                 samples = self.generate(current)
                 new_scores = self.score(samples).to(torch.float64).cpu()
+                new_members = self._filter_scores(samples, new_scores)
                 validity = trajectory_validity(
                     samples, normalizer=normalizer, max_abs_z=self.max_abs_z, min_length=min_length,
                     action_limit=self.action_limit, action_tolerance=self.action_tolerance,
                 )
                 valid = validity["valid"].cpu()
-                better = improves(normalized_scores(new_scores, s_min, s_max),
-                                  normalized_scores(cur_scores, s_min, s_max), self.threshold)
+                better = improves(normalized_scores(new_members, m_min, m_max),
+                                  normalized_scores(cur_members, m_min, m_max), self.threshold).all(0)
                 accept = valid & better & torch.isfinite(new_scores)
+                true_gain = None
                 if bool(accept.any()):
                     accepted = samples[accept].select(*TRAJ_KEYS).clone()
                     act = accepted.get("action").clamp(-self.action_limit, self.action_limit)
                     accepted.set("action", act * accepted.get("mask")[..., None])
                     current[accept] = accepted
                     cur_scores[accept] = new_scores[accept]
+                    cur_members[:, accept] = new_members[:, accept]
                     if cur_true is not None:  # only the replaced trajectories need the (costly) oracle
                         new_true = self._true_return(accepted)
+                        true_gain = new_true - cur_true[accept]
                         cur_true[accept] = new_true
                         pool_true.append(new_true)
                     pool.append(accepted)
@@ -433,6 +469,9 @@ class FlowToBetter(nn.Module):
                 }
                 if cur_true is not None:
                     row.update(true_return_mean=float(cur_true.mean()), true_return_max=float(cur_true.max()))
+                    if true_gain is not None:  # did the accepted samples beat what they replaced?
+                        row.update(accepted_true_gain_mean=float(true_gain.mean()),
+                                   accepted_true_gain_positive=float((true_gain > 0).double().mean()))
                 stats.append(row)
                 bar.set_postfix(accept=f"{row['accept_rate']:.2f}", score=f"{row['score_mean']:.3g}")
                 if self.logger is not None:
@@ -459,6 +498,7 @@ class FlowToBetter(nn.Module):
             "score_min_dataset": s_min,
             "score_max_dataset": s_max,
             "threshold": self.threshold,
+            "filter_members": float(member_scores.shape[0]),  # 1: the mean score; C: every member
             "min_length": float(min_length),
             "num_generated_accepted": float(generated.batch_size[0]),
             "fraction_generated_in_final": float((all_steps[keep] > 0).double().mean()),
