@@ -7,8 +7,10 @@ sample — accepted or not — the score gain (on the flow's dataset-normalised 
 return gain (ground-truth reward of the generated (s, a) sequence), the length change, the
 validity checks and, for Meta-World, the frame-stack error (the 39-d observation repeats the
 previous frame's 18 hand/object entries, ``obs[t + 1, 18:36] = obs[t, 0:18]`` in real data).
-Reports the Spearman correlation of score gain with true gain, the share of accepted samples
-whose true return rose, and the same split by length change. JSON to
+Reports how much the samples follow their conditions (Spearman of condition vs sample score,
+return and length: ~0 for an unconditional draw), the Spearman correlation of score gain with
+true gain, the share of accepted samples whose true return rose, and the same split by length
+change. JSON to
 ``bench/results/flow_diagnostics/<task>-<tag>.json``.
 
 Usage::
@@ -138,6 +140,14 @@ def main() -> None:
         "spearman_score_gain_vs_true_gain": spearman(d_score[valid], d_true[valid]),
         "spearman_length_gain_vs_true_gain": spearman(d_len[valid], d_true[valid]),
         "spearman_length_gain_vs_score_gain": spearman(d_len[valid], d_score[valid]),
+        # does the sample follow its condition? (an unconditional draw gives ~0)
+        "condition_following_spearman": {
+            "score": spearman(scores[top], new_scores), "true_return": spearman(true_old, true_new),
+            "length": spearman(cond["mask"].sum(-1).double(), samples["mask"].sum(-1).double()),
+        },
+        "mean_condition_vs_sample": {"score": [float(scores[top].mean()), float(new_scores.mean())],
+                                     "true_return": [float(true_old.mean()), float(true_new.mean())],
+                                     "dataset_score_mean": float(scores.mean())},
         "valid": _summary(valid, d_true), "accepted": _summary(accepted, d_true),
         "rejected_valid": _summary(valid & ~better, d_true),
         "accepted_same_or_shorter": _summary(accepted & (d_len <= 0), d_true),

@@ -318,3 +318,39 @@ def test_static_dims_are_not_diffused_and_restored(data, tmp_path):
     varying["observation"][..., 3] = torch.randn_like(varying["observation"][..., 3])
     with pytest.raises(ValueError, match=r"dims \[3\].*vary"):
         d.fit_normalizer(varying)
+
+
+def test_global_condition_path_pools_valid_steps_and_loads_legacy(data, tmp_path):
+    torch.manual_seed(0)
+    net = TemporalUnet(4, hidden_dim=8, dim_mults=(1, 2), cond_dim=8, num_heads=2, global_condition=True).eval()
+    x, t = torch.randn(2, 8, 4), torch.tensor([10, 500])
+    cond, mask = torch.randn(2, 6, 8), torch.tensor([[True] * 4 + [False] * 2] * 2)
+    cond2 = cond.clone()
+    cond2[:, 4:] = 100.0  # padded steps: neither attention nor the pooled path sees them
+    assert torch.allclose(net(x, t, cond, mask), net(x, t, cond2, mask), atol=1e-5)
+    # the pooled path alone carries the condition: with every attention block bypassed it still matters
+    for part in (net.downs, net.ups):
+        for level in part:
+            level[1] = _Skip()
+    net.mid[1] = _Skip()
+    assert not torch.allclose(net(x, t, cond, mask), net(x, t, cond + 1.0, mask), atol=1e-4)
+    plain = TemporalUnet(4, hidden_dim=8, dim_mults=(1, 2), cond_dim=8, num_heads=2).eval()
+    for part in (plain.downs, plain.ups):
+        for level in part:
+            level[1] = _Skip()
+    plain.mid[1] = _Skip()
+    assert torch.allclose(plain(x, t, cond, mask), plain(x, t, cond + 1.0, mask))
+    # make_diffuser records the option; a checkpoint from before it existed loads without it
+    diff = make_diffuser("tiny", obs_dim=3, action_dim=2, horizon=H, global_condition=True).fit_normalizer(data)
+    assert diff.config["global_condition"] is True and diff.backbone.global_condition
+    legacy = _diffuser(data)
+    path = save_diffuser(legacy, tmp_path / "legacy.pt")
+    ckpt = torch.load(path, weights_only=True)
+    ckpt["config"].pop("global_condition")
+    torch.save(ckpt, path)
+    assert not load_diffuser(path).backbone.global_condition
+
+
+class _Skip(torch.nn.Module):
+    def forward(self, h, *_):
+        return h

@@ -62,6 +62,7 @@ _MODEL_DEFAULTS = dict(
     num_heads=4,
     kernel_size=5,
     dropout=0.0,
+    global_condition=False,
     num_train_timesteps=1000,
     beta_schedule="squaredcos_cap_v2",
     cond_drop_prob=0.25,
@@ -172,6 +173,7 @@ def make_diffuser(
         num_heads=cfg["num_heads"],
         kernel_size=cfg["kernel_size"],
         dropout=cfg["dropout"],
+        global_condition=cfg["global_condition"],
     )
     encoder = None if unconditional else TrajectoryEncoder(diffused, embed_dim=cfg["cond_dim"],
                                                            kernel_size=cfg["kernel_size"])
@@ -192,5 +194,6 @@ def make_diffuser(
     )
     diffuser.config = {"preset": preset, "obs_dim": int(obs_dim), "action_dim": int(action_dim),
                        "horizon": int(horizon), "reward_channel": bool(reward_channel),
-                       "unconditional": bool(unconditional), "static_dims": list(static_dims), **overrides}
+                       "unconditional": bool(unconditional), "static_dims": list(static_dims),
+                       "global_condition": bool(cfg["global_condition"]), **overrides}
     return diffuser

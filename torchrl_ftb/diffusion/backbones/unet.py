@@ -12,6 +12,14 @@ features alone carry almost no absolute position). By default attention runs onl
 lowest resolution: its cost is ``O(H/f * Hc)`` per block, quadratic in the horizon at full
 resolution (``f=1``).
 
+``global_condition=True`` adds a second, global path: the masked mean of the encoded condition
+goes through an MLP and is added to the timestep embedding, so it reaches every residual block
+(as class labels do in class-conditional diffusion). FTB's training pairs tie a target to its
+condition only through their blocks (tau_1 is any trajectory of the next block), a global
+property; with attention alone our CPU-sized model learned to ignore the condition (samples'
+score, length and return uncorrelated with the condition's, guidance 1.2 vs 3 alike:
+``bench/results/flow_diagnostics``). The null condition's pooled vector is its learned token.
+
 Example:
     >>> import torch
     >>> net = TemporalUnet(transition_dim=6, hidden_dim=16, dim_mults=(1, 2, 4), cond_dim=16)
@@ -113,6 +121,14 @@ class ConditionCrossAttention(nn.Module):
         return h + out.transpose(1, 2)
 
 
+def _masked_mean(emb: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
+    """Mean of ``emb [B, L, C]`` over the steps where ``mask [B, L]`` is True (all if None)."""
+    if mask is None:
+        return emb.mean(1)
+    w = mask.to(emb.dtype)[..., None]
+    return (emb * w).sum(1) / w.sum(1).clamp_min(1.0)
+
+
 class _NoAttention(nn.Module):
     """Placeholder where a level has no attention (keeps the block layout uniform)."""
 
@@ -134,6 +150,8 @@ class TemporalUnet(DenoiserBackbone):
         num_heads: attention heads.
         kernel_size: temporal convolution kernel.
         dropout: dropout inside residual blocks (paper: 0.2).
+        global_condition: also add an MLP of the condition's masked mean embedding to the
+            timestep embedding of every block (see module docstring).
     """
 
     def __init__(
@@ -147,6 +165,7 @@ class TemporalUnet(DenoiserBackbone):
         num_heads: int = 4,
         kernel_size: int = 5,
         dropout: float = 0.0,
+        global_condition: bool = False,
     ) -> None:
         super().__init__(transition_dim, cond_dim)
         levels = len(dim_mults)
@@ -161,6 +180,10 @@ class TemporalUnet(DenoiserBackbone):
         self.attention_factors = tuple(sorted(factors)) if cond_dim is not None else ()
         time_dim = hidden_dim
         self.time_embedding = TimestepEmbedding(time_dim)
+        self.global_condition = bool(global_condition) and cond_dim is not None
+        if self.global_condition:
+            self.condition_mlp = nn.Sequential(nn.Linear(cond_dim, 4 * time_dim), nn.Mish(),
+                                               nn.Linear(4 * time_dim, time_dim))
         dims = [hidden_dim * m for m in dim_mults]
         res = dict(time_dim=time_dim, kernel_size=kernel_size, dropout=dropout)
 
@@ -214,6 +237,8 @@ class TemporalUnet(DenoiserBackbone):
         padded = -(-horizon // self.horizon_multiple) * self.horizon_multiple
         h = F.pad(x.transpose(1, 2), (0, padded - horizon))  # [B, D, H'] zero-padded on the right
         t_emb = self.time_embedding(t.expand(x.shape[0]) if t.ndim == 0 else t)
+        if self.global_condition and cond_emb is not None:
+            t_emb = t_emb + self.condition_mlp(_masked_mean(cond_emb, cond_mask)).to(t_emb.dtype)
         h = self.input_proj(h)
         skips = []
         for res1, attn, res2, down in self.downs:
