@@ -101,25 +101,25 @@ def test_kill_during_diffuser_training_then_resume_end_to_end(tmp_path):
     with pytest.raises(ValueError, match="not a stage"):
         recipe.run(_cfg(run_dir, "resume=true", "redo_from=sampling"))
 
-    # the score model's observation normaliser: off by default (identity buffers saved), on
+    # the score model's observation normaliser: on by default (fitted buffers saved), off
     # when asked (redo_from=score_model lets that section change)
     score_ckpt = run_dir / "checkpoints" / "score_model.pt"
     state = torch.load(score_ckpt, weights_only=True)["state_dict"]
     scale_key = next(k for k in state if k.endswith("obs_scale"))
-    assert bool((state[scale_key] == 1).all())
+    assert not bool((state[scale_key] == 1).all())
     # ... and a 2-member ensemble with the pessimistic flow filter (every member must agree)
     ens = ("score_model.num_members=2", "flow.ensemble_rule=all")
-    out = recipe.run(_cfg(run_dir, "resume=true", "redo_from=score_model", "score_model.normalize_observations=true",
+    out = recipe.run(_cfg(run_dir, "resume=true", "redo_from=score_model", "score_model.normalize_observations=false",
                           "flow.threshold=1.01", *ens))
     saved = torch.load(score_ckpt, weights_only=True)
-    assert not bool((saved["state_dict"][scale_key] == 1).all())
+    assert bool((saved["state_dict"][scale_key] == 1).all())
     assert saved["hparams"]["num_members"] == 2 and out["flow"]["filter_members"] == 2
 
     # a corrupt checkpoint is a clear error and is left as it was
     score_ckpt.write_bytes(b"garbage")
     with pytest.raises(ValueError, match="corrupt"):
         recipe.run(_cfg(run_dir, "resume=true", "flow.threshold=1.01",
-                        "score_model.normalize_observations=true", *ens))
+                        "score_model.normalize_observations=false", *ens))
     assert score_ckpt.read_bytes() == b"garbage"
 
 
