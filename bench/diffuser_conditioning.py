@@ -64,8 +64,7 @@ def evaluate(diffuser, model, trajs, scores, ids, *, per_block: int, sampler: st
                            "target_block_score": float(scores[ids == k + 1].mean()),
                            "sample_length": float(length[m].mean()),
                            "target_block_length": float(trajs["mask"][ids == k + 1].sum(-1).double().mean())}
-    return {"spearman_sample_score_vs_condition_block": spearman(blocks.double() + 1e-6 * torch.rand(len(blocks)),
-                                                                 s_new),
+    return {"spearman_sample_score_vs_condition_block": spearman(blocks.double(), s_new),
             "spearman_sample_score_vs_condition_score": spearman(scores[idx], s_new),
             "per_condition_block": per, "num_conditions": int(idx.numel())}
 

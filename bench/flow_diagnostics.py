@@ -37,17 +37,13 @@ from torchrl_ftb.envs import true_reward_fn  # noqa: E402
 from torchrl_ftb.flow import (  # noqa: E402
     FlowToBetter, improves, masked_true_return, normalized_scores, trajectory_validity,
 )
-from torchrl_ftb.preference import ScoreModel, score_trajectories  # noqa: E402
+from torchrl_ftb.preference import ScoreModel, correlations, score_trajectories  # noqa: E402
 from torchrl_ftb.provenance import run_record, write_json  # noqa: E402
 
 
 def spearman(a: torch.Tensor, b: torch.Tensor) -> float:
-    """Rank correlation (average ranks not needed here: continuous values)."""
-    if a.numel() < 3:
-        return float("nan")
-    ra, rb = a.argsort().argsort().double(), b.argsort().argsort().double()
-    ra, rb = ra - ra.mean(), rb - rb.mean()
-    return float((ra * rb).sum() / (ra.norm() * rb.norm()).clamp_min(1e-12))
+    """Spearman correlation (:func:`torchrl_ftb.preference.correlations`); NaN below 3 values."""
+    return correlations(a, b)["spearman"] if a.numel() >= 3 else float("nan")
 
 
 def frame_stack_error(trajs) -> torch.Tensor:
