@@ -29,7 +29,7 @@ def main() -> None:
     labels = make_scripted_labels(trajs, num_pairs=30, teacher=ReturnTeacher(), seed=0)
 
     # 1. preference augmentation: Bradley-Terry score model -> K ascending blocks
-    score_model = ScoreModel(3, 2, num_cells=64, seed=0)
+    score_model = ScoreModel(3, 2, num_cells=64, seed=0).fit_normalizer(trajs)  # r_psi on z-scored obs
     train_score_model(score_model, labels, steps=300, lr=1e-3, eval_fraction=0.0, progress=False)
     scores = score_trajectories(score_model, trajs)
     blocks = make_blocks(scores, 5, seed=0)
