@@ -17,10 +17,12 @@ Usage::
 
     python bench/flow_diagnostics.py --run-dir outputs/table1_obsnorm/button-press-v3/return/ftb/seed0 \\
         [--guidance 2.0] [--sampler dpm++ --steps 10] [--tag g2]
+    python bench/flow_diagnostics.py --summarize bench/results/flow_diagnostics/*.json   # Markdown table
 """
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
@@ -69,9 +71,35 @@ def _summary(mask: torch.Tensor, d_true: torch.Tensor) -> dict:
             "true_gain_mean": float(d_true[mask].mean()) if n else float("nan")}
 
 
+def summarize(paths: list[Path]) -> str:
+    """Markdown table of saved diagnostics, recomputed from their per-sample records."""
+    rows = ["| file | guidance | valid | accepted | follows condition: score / return / length | score: condition → sample "
+            "(dataset mean) | true return: condition → sample | Spearman(score gain, true gain) | accepted with true gain > 0 |",
+            "|---|---|---|---|---|---|---|---|---|"]
+    for path in paths:
+        rec = json.loads(path.read_text())
+        per, res = rec["per_sample"], rec["results"]
+        t = {k: torch.tensor(v, dtype=torch.float64) for k, v in per.items() if not k.startswith("check_")
+             and k != "improves"}
+        valid = torch.tensor(per["check_valid"])
+        acc = valid & torch.tensor(per["improves"])
+        gain = t["true_new"] - t["true_old"]
+        follow = [spearman(t[f"{k}_old"], t[f"{k}_new"]) for k in ("score", "true", "length")]
+        ds_mean = res.get("mean_condition_vs_sample", {}).get("dataset_score_mean", float("nan"))
+        rows.append(
+            f"| {path.stem} | {res['guidance']} | {valid.double().mean():.2f} | {int(acc.sum())} | "
+            + " / ".join(f"{v:+.2f}" for v in follow)
+            + f" | {t['score_old'].mean():.0f} → {t['score_new'].mean():.0f} ({ds_mean:.0f}) | "
+            f"{t['true_old'].mean():.0f} → {t['true_new'].mean():.0f} | {res['spearman_score_gain_vs_true_gain']:.2f} | "
+            + (f"{int((gain[acc] > 0).sum())} / {int(acc.sum())}" if bool(acc.any()) else "—") + " |")
+    return "\n".join(rows)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--run-dir", required=True, type=Path)
+    parser.add_argument("--summarize", nargs="+", type=Path, default=None,
+                        help="print a Markdown table of these saved JSONs and exit")
+    parser.add_argument("--run-dir", type=Path)
     parser.add_argument("--sampler", default=None, help="default: the run's (ddpm | ddim | dpm++)")
     parser.add_argument("--steps", type=int, default=None, help="sampler steps (default: the run's)")
     parser.add_argument("--guidance", type=float, default=None, help="default: the run's")
@@ -79,6 +107,11 @@ def main() -> None:
     parser.add_argument("--tag", default="")
     parser.add_argument("--threads", type=int, default=1)
     args = parser.parse_args()
+    if args.summarize:
+        print(summarize(args.summarize))
+        return
+    if args.run_dir is None:
+        parser.error("--run-dir is required (or --summarize FILES)")
     torch.set_num_threads(args.threads)
     run = args.run_dir
     cfg = OmegaConf.load(run / "config.yaml")
