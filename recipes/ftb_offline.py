@@ -67,10 +67,10 @@ from torchrl_ftb.provenance import git_commit, machine_info, make_logger, write_
 STAGES = ("dataset", "labels", "score_model", "blocks", "diffuser", "flow", "bc", "eval")
 # config entries that may change between a killed run and its resume
 RESUME_FREE_KEYS = ("resume", "overwrite", "redo_from", "progress", "logger", "device", "run_dir", "hydra")
-#: what each stage leaves under ``checkpoints/`` (removed by ``redo_from``)
 #: entries of another stage's section that only a later stage reads (free when that one is redone):
 #: the diffuser's sampling settings are used by the flow only
 STAGE_OWNED_KEYS = {"flow": (("diffuser", "sampler"), ("diffuser", "sample_steps"), ("diffuser", "guidance"))}
+#: what each stage leaves under ``checkpoints/`` (removed by ``redo_from``)
 STAGE_CHECKPOINTS = {"labels": ("labels",), "score_model": ("score_model.pt",), "blocks": ("blocks.pt",),
                      "diffuser": ("diffuser",), "flow": ("flow.pt",), "bc": ("bc.pt",)}
 

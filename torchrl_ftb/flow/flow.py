@@ -315,11 +315,15 @@ class FlowToBetter(nn.Module):
             out = torch.as_tensor(self.score_model(trajs)).reshape(trajs.batch_size[0])
         return out[None] if members else out
 
-    def _filter_scores(self, trajs: TensorDictBase, mean_scores: torch.Tensor) -> torch.Tensor:
-        """``[C, N]`` float64 scores the acceptance rule compares (``[1, N]``: the mean score)."""
-        if self.ensemble_rule == "mean":
-            return mean_scores.to(torch.float64).cpu()[None]
-        return self.score(trajs, members=True).to(torch.float64).cpu()
+    def _scores(self, trajs: TensorDictBase, mean: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(mean [N], filter [C, N])`` float64 on CPU: the score and what the acceptance rule
+        compares (``[1, N]``, the mean, unless ``ensemble_rule="all"``: every member's score).
+        The score model runs once; ``mean`` given (e.g. the blocks' scores) is used as is."""
+        if self.ensemble_rule == "all":
+            members = self.score(trajs, members=True).to(torch.float64).cpu()
+            return (members.mean(0) if mean is None else mean.to(torch.float64).cpu()), members
+        mean = (self.score(trajs) if mean is None else mean).to(torch.float64).cpu()
+        return mean, mean[None]
 
     @torch.no_grad()
     def generate(self, conditions: TensorDictBase) -> TensorDict:
@@ -396,15 +400,15 @@ class FlowToBetter(nn.Module):
         if self.top_k > n:
             raise ValueError(f"FlowToBetter: top_k={self.top_k} exceeds the {n} dataset trajectories")
         data = data.select(*TRAJ_KEYS)
-        scores = self.score(data) if scores is None else torch.as_tensor(scores).reshape(-1)
-        if scores.shape != (n,):
-            raise ValueError(f"FlowToBetter: scores have shape {list(scores.shape)}, expected [{n}]")
-        scores = scores.to(torch.float64).cpu()
+        if scores is not None:
+            scores = torch.as_tensor(scores).reshape(-1)
+            if scores.shape != (n,):
+                raise ValueError(f"FlowToBetter: scores have shape {list(scores.shape)}, expected [{n}]")
+        scores, member_scores = self._scores(data, scores)  # [N] and [C, N]: what the rule compares
         if block_ids is None and self.flow_steps is None:
             block_ids = make_blocks(scores, self.num_blocks, seed=self.seed)
         s_min, s_max = float(scores.min()), float(scores.max())
         top_idx = scores.argsort(descending=True)[: self.top_k]
-        member_scores = self._filter_scores(data, scores)  # [C, N]: what the rule compares
         m_min, m_max = member_scores.min(1, keepdim=True).values, member_scores.max(1, keepdim=True).values
         if not bool((m_max > m_min).all()):
             raise ValueError("FlowToBetter: every (member's) dataset score is equal; nothing to improve on")
@@ -430,8 +434,7 @@ class FlowToBetter(nn.Module):
             torch.manual_seed(self.seed)
             for step in bar:
                 samples = self.generate(current)
-                new_scores = self.score(samples).to(torch.float64).cpu()
-                new_members = self._filter_scores(samples, new_scores)
+                new_scores, new_members = self._scores(samples)
                 validity = trajectory_validity(
                     samples, normalizer=normalizer, max_abs_z=self.max_abs_z, min_length=min_length,
                     action_limit=self.action_limit, action_tolerance=self.action_tolerance,
