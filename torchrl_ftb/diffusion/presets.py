@@ -15,6 +15,13 @@ Presets differ only in numbers:
   0.79 s (no gain at these widths); held-out eps-MSE after 600 steps 0.08 at t=900,
   0.13 at t=600, 0.22 at t=300 (the previous preset, hidden 16 without the level-0 skip:
   0.85 at every t). Costs are in ``bench/results/diffusion_speed*.json``.
+  **Caveat (measured):** on Meta-World (H = 500) a model of this size trained for 1,500 -
+  3,000 steps does not follow its condition -- its samples' score, return and length are
+  uncorrelated with the condition's (``bench/flow_diagnostics.py``,
+  ``bench/diffuser_conditioning.py``), so the flow mostly keeps the original top-k. On the
+  toy task the same code follows its condition within 300 steps
+  (``tests/test_diffusion_training.py``). ``global_condition=True`` (a pooled condition
+  vector added to the timestep embedding) is available; it did not change this at 1,500 steps.
   Why DDPM and not DPM-Solver++/DDIM by default: on the toy task a briefly trained model
   sampled with the deterministic solvers gave clearly worse trajectories (toy, 400 steps:
   block-0 conditions -> mean true return -3.0 with DPM++ 25 / DDIM 25 vs -1.4 with DDPM 50,
