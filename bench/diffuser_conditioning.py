@@ -15,10 +15,12 @@ every evaluation (partial results survive a kill).
 Usage::
 
     python bench/diffuser_conditioning.py --run-dir outputs/exp/bp-norm-gc --steps 4500 --eval-every 1500
+    python bench/diffuser_conditioning.py --summarize bench/results/diffuser_conditioning/*.json
 """
 from __future__ import annotations
 
 import argparse
+import json
 import shutil
 import sys
 import time
@@ -69,10 +71,29 @@ def evaluate(diffuser, model, trajs, scores, ids, *, per_block: int, sampler: st
             "per_condition_block": per, "num_conditions": int(idx.numel())}
 
 
+def summarize(paths: list[Path]) -> str:
+    """Markdown table of saved results: one row per (file, evaluation)."""
+    rows = []
+    for path in paths:
+        rec = json.loads(path.read_text())
+        for ev in rec["evaluations"]:
+            per = ev["per_condition_block"]
+            if not rows:
+                rows = ["| file | diffuser steps | Spearman(sample score, condition block) | "
+                        + " | ".join(f"B{k} → sample (B{int(k) + 1} mean)" for k in per) + " |",
+                        "|---|---|---|" + "---|" * len(per)]
+            rows.append(f"| {path.stem} | {ev['step']} | {ev['spearman_sample_score_vs_condition_block']:+.2f} | "
+                        + " | ".join(f"{v['sample_score']:.0f} ({v['target_block_score']:.0f})" for v in per.values())
+                        + " |")
+    return "\n".join(rows)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--run-dir", required=True, type=Path)
-    parser.add_argument("--steps", type=int, required=True, help="total diffuser steps to train up to")
+    parser.add_argument("--summarize", nargs="+", type=Path, default=None,
+                        help="print a Markdown table of these saved JSONs and exit")
+    parser.add_argument("--run-dir", type=Path)
+    parser.add_argument("--steps", type=int, help="total diffuser steps to train up to")
     parser.add_argument("--eval-every", type=int, default=1500)
     parser.add_argument("--per-block", type=int, default=8)
     parser.add_argument("--sampler", default=None)
@@ -82,6 +103,11 @@ def main() -> None:
     parser.add_argument("--tag", default="")
     parser.add_argument("--threads", type=int, default=1)
     args = parser.parse_args()
+    if args.summarize:
+        print(summarize(args.summarize))
+        return
+    if args.run_dir is None or args.steps is None:
+        parser.error("--run-dir and --steps are required (or --summarize FILES)")
     torch.set_num_threads(args.threads)
     run = args.run_dir
     cfg = OmegaConf.load(run / "config.yaml")
