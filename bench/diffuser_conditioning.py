@@ -19,7 +19,6 @@ Usage::
 """
 from __future__ import annotations
 
-import argparse
 import json
 import shutil
 import sys
@@ -27,15 +26,15 @@ import time
 from pathlib import Path
 
 import torch
-from omegaconf import OmegaConf
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
-from flow_diagnostics import load_score_model, spearman  # noqa: E402
+from flow_diagnostics import (  # noqa: E402
+    load_run, load_score_model, parse_run_args, run_parser, sampling_settings, spearman,
+)
 
-from torchrl_ftb.datasets import dataset_kwargs, make_dataset  # noqa: E402
 from torchrl_ftb.diffusion import get_preset, load_diffuser, train_diffuser  # noqa: E402
 from torchrl_ftb.preference import make_block_pair_buffer, score_trajectories  # noqa: E402
 from torchrl_ftb.provenance import run_record, write_json  # noqa: E402
@@ -89,10 +88,7 @@ def summarize(paths: list[Path]) -> str:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--summarize", nargs="+", type=Path, default=None,
-                        help="print a Markdown table of these saved JSONs and exit")
-    parser.add_argument("--run-dir", type=Path)
+    parser = run_parser(__doc__)
     parser.add_argument("--steps", type=int, help="total diffuser steps to train up to")
     parser.add_argument("--eval-every", type=int, default=1500)
     parser.add_argument("--per-block", type=int, default=8)
@@ -100,23 +96,17 @@ def main() -> None:
     parser.add_argument("--sample-steps", type=int, default=None)
     parser.add_argument("--guidance", type=float, default=None)
     parser.add_argument("--work-dir", type=Path, default=None, help="default: <run-dir>/conditioning_bench")
-    parser.add_argument("--tag", default="")
-    parser.add_argument("--threads", type=int, default=1)
-    args = parser.parse_args()
-    if args.summarize:
-        print(summarize(args.summarize))
+    args = parse_run_args(parser, summarize)
+    if args is None:
         return
-    if args.run_dir is None or args.steps is None:
-        parser.error("--run-dir and --steps are required (or --summarize FILES)")
-    torch.set_num_threads(args.threads)
+    if args.steps is None:
+        parser.error("--steps is required with --run-dir")
     run = args.run_dir
-    cfg = OmegaConf.load(run / "config.yaml")
+    cfg, trajs = load_run(run)
     name = str(cfg.env.name)
-    preset = get_preset(str(cfg.diffuser.preset))
-    sampler = args.sampler or cfg.diffuser.sampler or preset["sample"]["sampler"]
-    sample_steps = args.sample_steps or cfg.diffuser.sample_steps or preset["sample"]["steps"]
-    guidance = args.guidance if args.guidance is not None else (cfg.diffuser.guidance or preset["sample"]["guidance"])
-    train = preset["train"]
+    sampler, sample_steps, guidance = sampling_settings(cfg, sampler=args.sampler, steps=args.sample_steps,
+                                                        guidance=args.guidance)
+    train = get_preset(str(cfg.diffuser.preset))["train"]
     batch_size = int(cfg.diffuser.batch_size or train["batch_size"])
     lr = float(cfg.diffuser.lr or train["lr"])
     clip = train.get("grad_clip") if cfg.diffuser.grad_clip == "preset" else cfg.diffuser.grad_clip
@@ -126,9 +116,6 @@ def main() -> None:
     ckpt = work / "diffuser_last.pt"
     if not ckpt.exists():  # never touch the run's own checkpoint
         shutil.copy2(run / "checkpoints" / "diffuser" / "diffuser_last.pt", ckpt)
-    trajs, _ = make_dataset(name, **dataset_kwargs(name, cfg.dataset, max_episode_steps=int(cfg.env.max_episode_steps),
-                                                   progress=False))
-    trajs = trajs.select("observation", "action", "mask")
     blocks = torch.load(run / "checkpoints" / "blocks.pt", weights_only=True)
     scores, ids = blocks["scores"].double(), blocks["block_ids"]
     model = load_score_model(run / "checkpoints" / "score_model.pt")

@@ -65,6 +65,26 @@ def load_score_model(path: Path) -> ScoreModel:
     return model
 
 
+def load_run(run: Path):
+    """``(cfg, trajectories)`` of an FTB run directory: its resolved config and its dataset
+    (``observation``, ``action``, ``mask``), rebuilt from the cache with the run's settings."""
+    cfg = OmegaConf.load(run / "config.yaml")
+    name = str(cfg.env.name)
+    trajs, _ = make_dataset(name, **dataset_kwargs(name, cfg.dataset, max_episode_steps=int(cfg.env.max_episode_steps),
+                                                   progress=False))
+    return cfg, trajs.select("observation", "action", "mask")
+
+
+def sampling_settings(cfg, *, sampler: str | None = None, steps: int | None = None,
+                      guidance: float | None = None) -> tuple[str, int, float]:
+    """The run's sampler, steps and guidance (its config, else its diffuser preset), overridable."""
+    preset = get_preset(str(cfg.diffuser.preset))["sample"]
+    sampler = sampler or cfg.diffuser.sampler or preset["sampler"]
+    steps = steps or cfg.diffuser.sample_steps or preset["steps"]
+    guidance = guidance if guidance is not None else (cfg.diffuser.guidance or preset["guidance"])
+    return str(sampler), int(steps), float(guidance)
+
+
 def _summary(mask: torch.Tensor, d_true: torch.Tensor) -> dict:
     n = int(mask.sum())
     return {"n": n, "true_gain_positive": float((d_true[mask] > 0).double().mean()) if n else float("nan"),
@@ -95,35 +115,44 @@ def summarize(paths: list[Path]) -> str:
     return "\n".join(rows)
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+def run_parser(doc: str) -> argparse.ArgumentParser:
+    """The command line both run-directory benches share: ``--run-dir`` or ``--summarize FILES``."""
+    parser = argparse.ArgumentParser(description=doc.split("\n")[0])
     parser.add_argument("--summarize", nargs="+", type=Path, default=None,
                         help="print a Markdown table of these saved JSONs and exit")
-    parser.add_argument("--run-dir", type=Path)
+    parser.add_argument("--run-dir", type=Path, help="an FTB run directory of recipes/ftb_offline.py")
+    parser.add_argument("--tag", default="", help="suffix of the results file")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads")
+    return parser
+
+
+def parse_run_args(parser: argparse.ArgumentParser, summarize_fn) -> argparse.Namespace | None:
+    """Parse; with ``--summarize`` print ``summarize_fn(files)`` and return None, else require
+    ``--run-dir`` and set the torch threads."""
+    args = parser.parse_args()
+    if args.summarize:
+        print(summarize_fn(args.summarize))
+        return None
+    if args.run_dir is None:
+        parser.error("--run-dir is required (or --summarize FILES)")
+    torch.set_num_threads(args.threads)
+    return args
+
+
+def main() -> None:
+    parser = run_parser(__doc__)
     parser.add_argument("--sampler", default=None, help="default: the run's (ddpm | ddim | dpm++)")
     parser.add_argument("--steps", type=int, default=None, help="sampler steps (default: the run's)")
     parser.add_argument("--guidance", type=float, default=None, help="default: the run's")
     parser.add_argument("--seed", type=int, default=None, help="default: the run's seed")
-    parser.add_argument("--tag", default="")
-    parser.add_argument("--threads", type=int, default=1)
-    args = parser.parse_args()
-    if args.summarize:
-        print(summarize(args.summarize))
+    args = parse_run_args(parser, summarize)
+    if args is None:
         return
-    if args.run_dir is None:
-        parser.error("--run-dir is required (or --summarize FILES)")
-    torch.set_num_threads(args.threads)
     run = args.run_dir
-    cfg = OmegaConf.load(run / "config.yaml")
+    cfg, trajs = load_run(run)
     name, f = str(cfg.env.name), cfg.flow
-    preset = get_preset(str(cfg.diffuser.preset))["sample"]
-    sampler_name = args.sampler or cfg.diffuser.sampler or preset["sampler"]
-    steps = args.steps or cfg.diffuser.sample_steps or preset["steps"]
-    guidance = args.guidance if args.guidance is not None else (cfg.diffuser.guidance or preset["guidance"])
-
-    trajs, _ = make_dataset(name, **dataset_kwargs(name, cfg.dataset, max_episode_steps=int(cfg.env.max_episode_steps),
-                                                   progress=False))
-    trajs = trajs.select("observation", "action", "mask")
+    sampler_name, steps, guidance = sampling_settings(cfg, sampler=args.sampler, steps=args.steps,
+                                                      guidance=args.guidance)
     model = load_score_model(run / "checkpoints" / "score_model.pt")
     diffuser = load_diffuser(run / "checkpoints" / "diffuser" / "diffuser_last.pt")
     seed = int(cfg.seed if args.seed is None else args.seed)
