@@ -329,16 +329,9 @@ def test_global_condition_path_pools_valid_steps_and_loads_legacy(data, tmp_path
     cond2[:, 4:] = 100.0  # padded steps: neither attention nor the pooled path sees them
     assert torch.allclose(net(x, t, cond, mask), net(x, t, cond2, mask), atol=1e-5)
     # the pooled path alone carries the condition: with every attention block bypassed it still matters
-    for part in (net.downs, net.ups):
-        for level in part:
-            level[1] = _Skip()
-    net.mid[1] = _Skip()
+    _bypass_attention(net)
     assert not torch.allclose(net(x, t, cond, mask), net(x, t, cond + 1.0, mask), atol=1e-4)
-    plain = TemporalUnet(4, hidden_dim=8, dim_mults=(1, 2), cond_dim=8, num_heads=2).eval()
-    for part in (plain.downs, plain.ups):
-        for level in part:
-            level[1] = _Skip()
-    plain.mid[1] = _Skip()
+    plain = _bypass_attention(TemporalUnet(4, hidden_dim=8, dim_mults=(1, 2), cond_dim=8, num_heads=2).eval())
     assert torch.allclose(plain(x, t, cond, mask), plain(x, t, cond + 1.0, mask))
     # make_diffuser records the option; a checkpoint from before it existed loads without it
     diff = make_diffuser("tiny", obs_dim=3, action_dim=2, horizon=H, global_condition=True).fit_normalizer(data)
@@ -354,3 +347,11 @@ def test_global_condition_path_pools_valid_steps_and_loads_legacy(data, tmp_path
 class _Skip(torch.nn.Module):
     def forward(self, h, *_):
         return h
+
+
+def _bypass_attention(net: TemporalUnet) -> TemporalUnet:
+    """Replace every cross-attention slot of the U-Net (in place) by an identity."""
+    for level in (*net.downs, *net.ups):
+        level[1] = _Skip()
+    net.mid[1] = _Skip()
+    return net
