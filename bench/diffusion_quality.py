@@ -45,7 +45,7 @@ from tensordict import TensorDict
 from torchrl_ftb.datasets.metaworld import make_metaworld_dataset
 from torchrl_ftb.diffusion import (DiffusionSampler, get_preset, load_diffuser, make_diffuser, save_diffuser,
                                    train_diffuser)
-from torchrl_ftb.envs.metaworld import metaworld_true_reward
+from torchrl_ftb.envs.metaworld import metaworld_frame_stack_error, metaworld_true_reward
 from torchrl_ftb.preference import make_block_pair_buffer, make_blocks
 from torchrl_ftb.provenance import run_record, write_json
 
@@ -72,9 +72,10 @@ def dynamics_proxies(obs, act, mask, hand_w: torch.Tensor) -> dict:
     o, a, o1 = _transitions(obs.float(), act.float(), mask.bool())
     if len(o) == 0:
         return {"framestack_err_mm": float("nan"), "hand_dyn_err_mm": float("nan"), "num_transitions": 0}
-    stack = (o1[:, 18:36] - o[:, 0:18]).norm(dim=-1)
+    stack = metaworld_frame_stack_error(TensorDict({"observation": obs, "mask": mask.bool()}, obs.shape[:2]),
+                                        pooled=True)
     hand = ((o1[:, :3] - o[:, :3]).double() - _features(o, a) @ hand_w).norm(dim=-1)
-    return {"framestack_err_mm": 1000 * float(stack.mean()), "hand_dyn_err_mm": 1000 * float(hand.mean()),
+    return {"framestack_err_mm": 1000 * float(stack), "hand_dyn_err_mm": 1000 * float(hand.mean()),
             "num_transitions": int(len(o))}
 
 

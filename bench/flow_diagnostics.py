@@ -35,7 +35,7 @@ sys.path.insert(0, str(ROOT))
 
 from torchrl_ftb.datasets import dataset_kwargs, make_dataset  # noqa: E402
 from torchrl_ftb.diffusion import DiffusionSampler, get_preset, load_diffuser  # noqa: E402
-from torchrl_ftb.envs import true_reward_fn  # noqa: E402
+from torchrl_ftb.envs import metaworld_frame_stack_error, true_reward_fn  # noqa: E402
 from torchrl_ftb.flow import (  # noqa: E402
     FlowToBetter, improves, masked_true_return, normalized_scores, trajectory_validity,
 )
@@ -46,14 +46,6 @@ from torchrl_ftb.provenance import run_record, write_json  # noqa: E402
 def spearman(a: torch.Tensor, b: torch.Tensor) -> float:
     """Spearman correlation (:func:`torchrl_ftb.preference.correlations`); NaN below 3 values."""
     return correlations(a, b)["spearman"] if a.numel() >= 3 else float("nan")
-
-
-def frame_stack_error(trajs) -> torch.Tensor:
-    """Mean |obs[t+1, 18:36] - obs[t, 0:18]| over valid steps, per trajectory (Meta-World 39-d)."""
-    obs, mask = trajs["observation"], trajs["mask"]
-    pair = mask[:, 1:] & mask[:, :-1]
-    err = (obs[:, 1:, 18:36] - obs[:, :-1, 0:18]).abs().mean(-1) * pair
-    return err.sum(-1) / pair.sum(-1).clamp_min(1)
 
 
 def load_score_model(path: Path) -> ScoreModel:
@@ -214,8 +206,8 @@ def main() -> None:
             float(true_new[valid].max()) if bool(valid.any()) else float("nan"),
     }
     if trajs["observation"].shape[-1] == 39:
-        fs_data = frame_stack_error(trajs)
-        fs = frame_stack_error(samples)
+        fs_data = metaworld_frame_stack_error(trajs)
+        fs = metaworld_frame_stack_error(samples)
         results["frame_stack_error"] = {"dataset_mean": float(fs_data.mean()), "dataset_max": float(fs_data.max()),
                                         "samples_mean": float(fs.mean()),
                                         "spearman_vs_true_gain": spearman(fs[valid], d_true[valid])}

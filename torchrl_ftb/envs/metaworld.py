@@ -39,6 +39,7 @@ __all__ = [
     "scripted_policy",
     "metaworld_true_reward",
     "metaworld_reward_error",
+    "metaworld_frame_stack_error",
 ]
 
 METAWORLD_MAX_EPISODE_STEPS = 500
@@ -430,3 +431,41 @@ def metaworld_reward_error(
         true_s = trajectories.get(("next", "success")).squeeze(-1)[mask]
         out["success_agreement"] = float((s.squeeze(-1)[mask] == true_s).float().mean())
     return out
+
+
+def metaworld_frame_stack_error(trajectories: TensorDictBase, *, pooled: bool = False) -> torch.Tensor:
+    """Frame-stack consistency of Meta-World (generated) trajectories, in metres.
+
+    A v3 observation stacks the previous frame: ``obs[t + 1, 18:36]`` must equal
+    ``obs[t, 0:18]`` (hand, gripper and object poses). Real data meet this to float precision;
+    a generated trajectory's error measures how far its consecutive steps are from one
+    another's copy. The error of a transition is the Euclidean norm over the 18 stacked
+    coordinates; only pairs of consecutive valid steps count.
+
+    Args:
+        trajectories: ``[N, H]`` batch with a 39-d ``observation`` and a ``mask``.
+        pooled: return one number, the mean over all transitions of the batch (longer
+            trajectories weigh more), instead of one mean per trajectory.
+
+    Returns:
+        ``[N]`` per-trajectory mean error (0 for trajectories with < 2 valid steps), or a
+        scalar with ``pooled=True`` (NaN if the batch has no transition).
+
+    Example:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> obs = torch.zeros(1, 3, 39)
+        >>> obs[0, 1, 18:21] = torch.tensor([0.003, 0.0, 0.004])  # 5 mm off the previous frame
+        >>> td = TensorDict({"observation": obs, "mask": torch.ones(1, 3, dtype=torch.bool)}, [1, 3])
+        >>> round(float(metaworld_frame_stack_error(td)[0]), 4)  # two transitions: 5 mm and 0
+        0.0025
+    """
+    obs, mask = trajectories.get("observation"), trajectories.get("mask").bool()
+    if obs.shape[-1] != 39:
+        raise ValueError(f"metaworld_frame_stack_error: 'observation' has {obs.shape[-1]} dims; "
+                         "Meta-World v3 observations have 39 (two stacked 18-d frames + 3-d goal)")
+    pair = mask[:, 1:] & mask[:, :-1]
+    err = (obs[:, 1:, 18:36].float() - obs[:, :-1, 0:18].float()).norm(dim=-1) * pair
+    if pooled:
+        return err.sum() / pair.sum() if bool(pair.any()) else torch.tensor(float("nan"))
+    return err.sum(-1) / pair.sum(-1).clamp_min(1)
