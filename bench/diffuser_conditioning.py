@@ -32,11 +32,11 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
 from flow_diagnostics import (  # noqa: E402
-    load_run, load_score_model, parse_run_args, run_parser, sampling_settings, spearman,
+    load_run, parse_run_args, run_parser, sampling_settings, spearman,
 )
 
 from torchrl_ftb.diffusion import get_preset, load_diffuser, train_diffuser  # noqa: E402
-from torchrl_ftb.preference import make_block_pair_buffer, score_trajectories  # noqa: E402
+from torchrl_ftb.preference import load_score_model, make_block_pair_buffer, score_trajectories  # noqa: E402
 from torchrl_ftb.provenance import run_record, write_json  # noqa: E402
 
 

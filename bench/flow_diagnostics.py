@@ -39,22 +39,13 @@ from torchrl_ftb.envs import metaworld_frame_stack_error, true_reward_fn  # noqa
 from torchrl_ftb.flow import (  # noqa: E402
     FlowToBetter, improves, masked_true_return, normalized_scores, trajectory_validity,
 )
-from torchrl_ftb.preference import ScoreModel, correlations, score_trajectories  # noqa: E402
+from torchrl_ftb.preference import correlations, load_score_model, score_trajectories  # noqa: E402
 from torchrl_ftb.provenance import run_record, write_json  # noqa: E402
 
 
 def spearman(a: torch.Tensor, b: torch.Tensor) -> float:
     """Spearman correlation (:func:`torchrl_ftb.preference.correlations`); NaN below 3 values."""
     return correlations(a, b)["spearman"] if a.numel() >= 3 else float("nan")
-
-
-def load_score_model(path: Path) -> ScoreModel:
-    ckpt = torch.load(path, weights_only=True)
-    h = ckpt["hparams"]
-    model = ScoreModel(h["observation_dim"], h["action_dim"], num_cells=h["num_cells"], num_layers=h["num_layers"],
-                       num_members=h.get("num_members", 1), gamma=h["gamma"])
-    model.load_state_dict(ckpt["state_dict"])
-    return model
 
 
 def load_run(run: Path):

@@ -56,6 +56,8 @@ from torchrl_ftb.policy import (
 )
 from torchrl_ftb.preference import (
     ScoreModel,
+    load_score_model,
+    save_score_model,
     correlations,
     make_block_pair_buffer,
     make_blocks,
@@ -209,12 +211,7 @@ def stage_score_model(cfg, run: RunDir, trajs, labels, obs_dim, act_dim, device,
                        seed=int(cfg.seed), device=device)
     path = run.ckpt / "score_model.pt"
     if run.done("score_model"):
-        ckpt = _load_ckpt(path, "torchrl_ftb.score_model")
-        try:
-            model.load_state_dict(ckpt["state_dict"])
-        except (RuntimeError, KeyError) as err:
-            raise ValueError(f"{path}: score model checkpoint does not match the config ({err})") from err
-        return model
+        return load_score_model(path, model=model, map_location=device)
     if sm_cfg.get("normalize_observations"):
         model.fit_normalizer(trajs)  # on the whole dataset, not the labelled trajectories
     out = train_score_model(
@@ -222,8 +219,7 @@ def stage_score_model(cfg, run: RunDir, trajs, labels, obs_dim, act_dim, device,
         eval_fraction=float(sm_cfg.eval_fraction), seed=int(cfg.seed), logger=logger,
         progress=bool(cfg.progress), device=device,
     )
-    atomic_torch_save({"kind": "torchrl_ftb.score_model", "hparams": model.hparams,
-                       "state_dict": model.state_dict()}, path)
+    save_score_model(model, path)
     run.mark("score_model", **{k: v for k, v in out.items() if isinstance(v, (int, float)) and math.isfinite(v)})
     return model
 

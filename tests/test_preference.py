@@ -12,9 +12,11 @@ from torchrl_ftb.preference import (
     ScoreModel,
     bradley_terry_nll,
     correlations,
+    load_score_model,
     pairwise_accuracy,
     plot_preference_scatter,
     preference_metrics,
+    save_score_model,
     score_trajectories,
     split_labels,
     train_score_model,
@@ -347,3 +349,22 @@ def test_preference_metrics_and_scatter(tmp_path, toy, trained):
     with pytest.raises(ValueError, match="true_returns"):
         preference_metrics(model, toy, true_returns=torch.zeros(3))
     assert math.isnan(correlations(torch.ones(5), torch.arange(5.0))["spearman"])
+
+
+def test_score_model_checkpoint_roundtrip_and_clear_errors(tmp_path):
+    trajs = make_toy_dataset(num_trajectories=6, horizon=8, seed=0)
+    model = ScoreModel(3, 2, num_cells=8, num_members=2, gamma=0.9, seed=0).fit_normalizer(trajs)
+    path = save_score_model(model, tmp_path / "score.pt")
+    loaded = load_score_model(path)
+    assert loaded.hparams == model.hparams and loaded.normalizer_fitted
+    torch.testing.assert_close(score_trajectories(loaded, trajs), score_trajectories(model, trajs))
+    with pytest.raises(ValueError, match="does not fit"):
+        load_score_model(path, model=ScoreModel(3, 2, num_cells=16))
+    with pytest.raises(FileNotFoundError, match="no score-model checkpoint"):
+        load_score_model(tmp_path / "missing.pt")
+    (tmp_path / "corrupt.pt").write_bytes(b"garbage")
+    with pytest.raises(ValueError, match="corrupt"):
+        load_score_model(tmp_path / "corrupt.pt")
+    torch.save({"kind": "something.else"}, tmp_path / "foreign.pt")
+    with pytest.raises(ValueError, match="not a torchrl_ftb.score_model"):
+        load_score_model(tmp_path / "foreign.pt")

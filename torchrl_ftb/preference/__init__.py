@@ -19,7 +19,13 @@ from torchrl_ftb.preference.pairs import (
     make_block_pair_buffer,
     make_labeled_pair_buffer,
 )
-from torchrl_ftb.preference.score import ScoreModel, score_trajectories
+from torchrl_ftb.preference.score import (
+    SCORE_MODEL_CHECKPOINT,
+    ScoreModel,
+    load_score_model,
+    save_score_model,
+    score_trajectories,
+)
 from torchrl_ftb.preference.train import split_labels, train_score_model
 
 __all__ = [
@@ -27,16 +33,19 @@ __all__ = [
     "BlockWarning",
     "BradleyTerryLoss",
     "PairToConditionTarget",
+    "SCORE_MODEL_CHECKPOINT",
     "ScoreModel",
     "bradley_terry_nll",
     "correlations",
     "make_block_pair_buffer",
     "make_blocks",
     "make_labeled_pair_buffer",
+    "load_score_model",
     "pairwise_accuracy",
     "plot_preference_scatter",
     "preference_accuracy",
     "preference_metrics",
+    "save_score_model",
     "score_trajectories",
     "split_labels",
     "train_score_model",

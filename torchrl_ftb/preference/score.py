@@ -22,7 +22,9 @@ Example:
 from __future__ import annotations
 
 import copy
-from typing import Sequence
+import os
+from pathlib import Path
+from typing import Any, Sequence
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -31,9 +33,9 @@ from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.modules import MLP
 
-from torchrl_ftb.data.trajectories import observation_statistics
+from torchrl_ftb.data.trajectories import atomic_torch_save, observation_statistics
 
-__all__ = ["ScoreModel", "score_trajectories"]
+__all__ = ["SCORE_MODEL_CHECKPOINT", "ScoreModel", "load_score_model", "save_score_model", "score_trajectories"]
 
 
 def _prefixed(prefix: NestedKey | Sequence, key: NestedKey) -> NestedKey:
@@ -347,3 +349,73 @@ def score_trajectories(
     if not bool(torch.isfinite(out).all()):
         raise FloatingPointError("score_trajectories: the score model produced NaN/inf scores")
     return out.to(trajs.get("mask").device)
+
+
+#: ``kind`` tag of score-model checkpoints (:func:`save_score_model`)
+SCORE_MODEL_CHECKPOINT = "torchrl_ftb.score_model"
+
+
+def save_score_model(model: ScoreModel, path: str | os.PathLike, *, extra: dict | None = None) -> Path:
+    """Atomically save a score model's constructor numbers and weights (normaliser included).
+
+    Args:
+        model: the :class:`ScoreModel`.
+        path: target file.
+        extra: more ``weights_only``-loadable entries stored beside them.
+
+    Example:
+        >>> import tempfile, os
+        >>> model = ScoreModel(3, 2, num_cells=8, gamma=0.99, seed=0)
+        >>> path = os.path.join(tempfile.mkdtemp(), "score_model.pt")
+        >>> loaded = load_score_model(save_score_model(model, path))
+        >>> loaded.hparams == model.hparams
+        True
+    """
+    payload = {"kind": SCORE_MODEL_CHECKPOINT, "hparams": dict(model.hparams), "state_dict": model.state_dict(),
+               **(extra or {})}
+    atomic_torch_save(payload, path)
+    return Path(path)
+
+
+def load_score_model(
+    path: str | os.PathLike,
+    *,
+    model: ScoreModel | None = None,
+    map_location: Any = "cpu",
+) -> ScoreModel:
+    """Load a score model written by :func:`save_score_model` (``torch.load(weights_only=True)``).
+
+    Args:
+        path: checkpoint file.
+        model: load into this model (its numbers must match the file's); ``None`` rebuilds it
+            from the stored ``hparams``.
+        map_location: device of the loaded tensors.
+
+    Raises:
+        FileNotFoundError: no file.
+        ValueError: corrupt file, not a score-model checkpoint, or weights that do not fit.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no score-model checkpoint")
+    try:
+        ckpt = torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as err:  # truncated / corrupt / foreign pickle
+        raise ValueError(f"{path}: corrupt or unreadable score-model checkpoint ({type(err).__name__}: {err})") from err
+    if not isinstance(ckpt, dict) or ckpt.get("kind") != SCORE_MODEL_CHECKPOINT or "state_dict" not in ckpt:
+        raise ValueError(f"{path}: not a {SCORE_MODEL_CHECKPOINT} checkpoint")
+    hparams = ckpt.get("hparams") or {}
+    if model is None:
+        required = ("observation_dim", "action_dim", "num_cells", "num_layers")
+        missing = [k for k in required if k not in hparams]
+        if missing:
+            raise ValueError(f"{path}: score-model checkpoint lacks hparams {missing}; pass model= to load into")
+        model = ScoreModel(hparams["observation_dim"], hparams["action_dim"], num_cells=hparams["num_cells"],
+                           num_layers=hparams["num_layers"], num_members=hparams.get("num_members", 1),
+                           gamma=hparams.get("gamma", 1.0))
+    try:
+        model.load_state_dict(ckpt["state_dict"])
+    except (RuntimeError, KeyError) as err:
+        raise ValueError(f"{path}: score-model checkpoint (hparams {hparams}) does not fit the model "
+                         f"(hparams {model.hparams}): {err}") from err
+    return model
