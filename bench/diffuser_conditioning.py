@@ -4,17 +4,22 @@ FTB's diffuser is trained on pairs (tau_0 in block k, tau_1 in block k + 1): a s
 conditioned on a block-k trajectory should look like a block-(k + 1) one. This bench copies
 the diffuser checkpoint of an FTB run (``recipes/ftb_offline.py``), continues its training on
 the run's own block pairs (same buffer, optimiser state and RNG: ``train_diffuser(resume=True)``)
-and, every ``--eval-every`` steps, samples one trajectory for each of ``--per-block``
-conditions from every block but the last, scoring the samples with the run's score model.
-Reported per evaluation: the Spearman correlation of the sample's score with the condition's
-block (an unconditional model gives ~0), the mean sample score per condition block next to
-the dataset's mean score of the block the pairs taught it to produce (k + 1), and the mean
-generated length. JSON to ``bench/results/diffuser_conditioning/<task>-<tag>.json`` after
-every evaluation (partial results survive a kill).
+-- or, with ``--preset``, trains a fresh diffuser of that preset on the same pairs -- and,
+every ``--eval-every`` steps, samples one trajectory for each of ``--per-block`` conditions
+from every block but the last, scoring the samples with the run's score model and with the
+true-reward oracle. Reported per evaluation: the Spearman correlation of the sample's score
+(and true return) with the condition's block (an unconditional model gives ~0), the mean
+sample score / true return per condition block next to the dataset's mean of the block the
+pairs taught it to produce (k + 1), and the mean generated length. JSON to
+``bench/results/diffuser_conditioning/<task>-<run>-<tag>.json`` after every evaluation
+(partial results survive a kill). ``--device cuda --autocast-bf16 --max-minutes M`` is the
+GPU check (paper preset) that decides whether our CPU-budget findings are about the budget.
 
 Usage::
 
     python bench/diffuser_conditioning.py --run-dir outputs/exp/bp-norm-gc --steps 4500 --eval-every 1500
+    python bench/diffuser_conditioning.py --run-dir RUN --preset paper --steps 20000 --eval-every 2000 \
+        --device cuda --autocast-bf16 --max-minutes 7 --tag paper-gpu
     python bench/diffuser_conditioning.py --summarize bench/results/diffuser_conditioning/*.json
 """
 from __future__ import annotations
@@ -35,13 +40,15 @@ from flow_diagnostics import (  # noqa: E402
     load_run, parse_run_args, run_parser, sampling_settings, spearman,
 )
 
-from torchrl_ftb.diffusion import get_preset, load_diffuser, train_diffuser  # noqa: E402
+from torchrl_ftb.diffusion import get_preset, load_diffuser, make_diffuser, train_diffuser  # noqa: E402
+from torchrl_ftb.envs import true_reward_fn  # noqa: E402
+from torchrl_ftb.flow import masked_true_return  # noqa: E402
 from torchrl_ftb.preference import load_score_model, make_block_pair_buffer, score_trajectories  # noqa: E402
 from torchrl_ftb.provenance import run_record, write_json  # noqa: E402
 
 
 def evaluate(diffuser, model, trajs, scores, ids, *, per_block: int, sampler: str, steps: int, guidance: float,
-             seed: int) -> dict:
+             seed: int, returns: torch.Tensor | None = None, reward_fn=None, autocast_bf16: bool = False) -> dict:
     """Condition-following statistics of one model state (see module docstring)."""
     gen = torch.Generator().manual_seed(seed)
     num_blocks = int(ids.max()) + 1
@@ -55,8 +62,14 @@ def evaluate(diffuser, model, trajs, scores, ids, *, per_block: int, sampler: st
     idx = torch.cat(picks)
     blocks = torch.tensor(blocks)
     cond = trajs[idx]
-    sample = diffuser.generate(cond, sampler=sampler, steps=steps, guidance=guidance, generator=gen)
+    sample = diffuser.generate(cond, sampler=sampler, steps=steps, guidance=guidance, generator=gen,
+                               autocast_bf16=autocast_bf16).to("cpu")
     s_new = score_trajectories(model, sample).double()
+    true_new = None
+    if reward_fn is not None and returns is not None:  # the oracle's return of the (action-clipped) samples
+        clipped = sample.clone()
+        clipped["action"] = clipped["action"].clamp(-1, 1) * clipped["mask"][..., None]
+        true_new = masked_true_return(clipped, reward_fn).double()
     length = sample["mask"].sum(-1).double()
     per = {}
     for k in range(num_blocks - 1):
@@ -65,7 +78,13 @@ def evaluate(diffuser, model, trajs, scores, ids, *, per_block: int, sampler: st
                            "target_block_score": float(scores[ids == k + 1].mean()),
                            "sample_length": float(length[m].mean()),
                            "target_block_length": float(trajs["mask"][ids == k + 1].sum(-1).double().mean())}
-    return {"spearman_sample_score_vs_condition_block": spearman(blocks.double(), s_new),
+        if true_new is not None:
+            per[str(k + 1)].update(condition_true_return=float(returns[idx[m]].mean()),
+                                   sample_true_return=float(true_new[m].mean()),
+                                   target_block_true_return=float(returns[ids == k + 1].mean()))
+    extra = {} if true_new is None else {
+        "spearman_sample_true_return_vs_condition_block": spearman(blocks.double(), true_new)}
+    return {**extra, "spearman_sample_score_vs_condition_block": spearman(blocks.double(), s_new),
             "spearman_sample_score_vs_condition_score": spearman(scores[idx], s_new),
             "per_condition_block": per, "num_conditions": int(idx.numel())}
 
@@ -78,11 +97,15 @@ def summarize(paths: list[Path]) -> str:
         for ev in rec["evaluations"]:
             per = ev["per_condition_block"]
             if not rows:
-                rows = ["| file | diffuser steps | Spearman(sample score, condition block) | "
-                        + " | ".join(f"B{k} → sample (B{int(k) + 1} mean)" for k in per) + " |",
+                rows = ["| file | diffuser steps | Spearman(condition block, sample score / true return) | "
+                        + " | ".join(f"B{k} → sample score (B{int(k) + 1} mean); true return" for k in per) + " |",
                         "|---|---|---|" + "---|" * len(per)]
-            rows.append(f"| {path.stem} | {ev['step']} | {ev['spearman_sample_score_vs_condition_block']:+.2f} | "
-                        + " | ".join(f"{v['sample_score']:.0f} ({v['target_block_score']:.0f})" for v in per.values())
+            true_rho = ev.get("spearman_sample_true_return_vs_condition_block")
+            rows.append(f"| {path.stem} | {ev['step']} | {ev['spearman_sample_score_vs_condition_block']:+.2f} / "
+                        + ("—" if true_rho is None else f"{true_rho:+.2f}") + " | "
+                        + " | ".join(f"{v['sample_score']:.0f} ({v['target_block_score']:.0f})"
+                                     + (f"; {v['sample_true_return']:.0f} ({v['target_block_true_return']:.0f})"
+                                        if "sample_true_return" in v else "") for v in per.values())
                         + " |")
     return "\n".join(rows)
 
@@ -95,44 +118,66 @@ def main() -> None:
     parser.add_argument("--sampler", default=None)
     parser.add_argument("--sample-steps", type=int, default=None)
     parser.add_argument("--guidance", type=float, default=None)
-    parser.add_argument("--work-dir", type=Path, default=None, help="default: <run-dir>/conditioning_bench")
+    parser.add_argument("--work-dir", type=Path, default=None,
+                        help="default: <run-dir>/conditioning_bench[_<preset>]")
+    parser.add_argument("--preset", default=None,
+                        help="train a FRESH diffuser of this preset (cpu | paper) on the run's pairs instead of "
+                             "continuing the run's own (with its preset's batch size and lr)")
+    parser.add_argument("--device", default=None, help="default: cuda if available, else cpu")
+    parser.add_argument("--autocast-bf16", action="store_true", help="bf16 autocast in training and sampling")
+    parser.add_argument("--max-minutes", type=float, default=None,
+                        help="stop training after this much wall time (evaluates once more, then exits)")
     args = parse_run_args(parser, summarize)
     if args is None:
         return
     if args.steps is None:
         parser.error("--steps is required with --run-dir")
+    device = torch.device(args.device or ("cuda" if torch.cuda.is_available() else "cpu"))
     run = args.run_dir
-    cfg, trajs = load_run(run)
+    cfg, trajs, returns = load_run(run, with_returns=True)
     name = str(cfg.env.name)
+    reward_fn = true_reward_fn(name)
     sampler, sample_steps, guidance = sampling_settings(cfg, sampler=args.sampler, steps=args.sample_steps,
                                                         guidance=args.guidance)
-    train = get_preset(str(cfg.diffuser.preset))["train"]
-    batch_size = int(cfg.diffuser.batch_size or train["batch_size"])
-    lr = float(cfg.diffuser.lr or train["lr"])
-    clip = train.get("grad_clip") if cfg.diffuser.grad_clip == "preset" else cfg.diffuser.grad_clip
+    if args.preset is not None:  # a fresh model: its own preset's training numbers
+        train = get_preset(args.preset)["train"]
+        batch_size, lr, clip = int(train["batch_size"]), float(train["lr"]), train.get("grad_clip")
+    else:
+        train = get_preset(str(cfg.diffuser.preset))["train"]
+        batch_size = int(cfg.diffuser.batch_size or train["batch_size"])
+        lr = float(cfg.diffuser.lr or train["lr"])
+        clip = train.get("grad_clip") if cfg.diffuser.grad_clip == "preset" else cfg.diffuser.grad_clip
 
-    work = args.work_dir or run / "conditioning_bench"
+    work = args.work_dir or run / ("conditioning_bench" + (f"_{args.preset}" if args.preset else ""))
     work.mkdir(parents=True, exist_ok=True)
     ckpt = work / "diffuser_last.pt"
-    if not ckpt.exists():  # never touch the run's own checkpoint
-        shutil.copy2(run / "checkpoints" / "diffuser" / "diffuser_last.pt", ckpt)
     blocks = torch.load(run / "checkpoints" / "blocks.pt", weights_only=True)
     scores, ids = blocks["scores"].double(), blocks["block_ids"]
     model = load_score_model(run / "checkpoints" / "score_model.pt")
-    diffuser = load_diffuser(ckpt)
+    if ckpt.exists():
+        diffuser = load_diffuser(ckpt)
+    elif args.preset is not None:
+        diffuser = make_diffuser(args.preset, obs_dim=trajs["observation"].shape[-1],
+                                 action_dim=trajs["action"].shape[-1], horizon=trajs.batch_size[1], data=trajs)
+    else:  # never touch the run's own checkpoint
+        shutil.copy2(run / "checkpoints" / "diffuser" / "diffuser_last.pt", ckpt)
+        diffuser = load_diffuser(ckpt)
+    diffuser.to(device)
     buffer = make_block_pair_buffer(trajs, ids, batch_size=batch_size, seed=int(cfg.seed))
     tag = f"-{args.tag}" if args.tag else ""
     out = ROOT / "bench" / "results" / "diffuser_conditioning" / f"{name}-{run.name}{tag}.json"
     record = {**run_record(config={**vars(args), "run_dir": str(run), "sampler": sampler,
                                    "sample_steps": int(sample_steps), "guidance": float(guidance),
-                                   "batch_size": batch_size, "lr": lr, "grad_clip": clip,
+                                   "batch_size": batch_size, "lr": lr, "grad_clip": clip, "device": str(device),
                                    "diffuser_config": diffuser.config}),
               "evaluations": []}
-    step = int(torch.load(ckpt, weights_only=True)["step"])
+    step = int(torch.load(ckpt, weights_only=True)["step"]) if ckpt.exists() else 0
+    started = time.time()
     while True:
         t0 = time.time()
         ev = evaluate(diffuser, model, trajs, scores, ids, per_block=args.per_block, sampler=sampler,
-                      steps=int(sample_steps), guidance=float(guidance), seed=int(cfg.seed))
+                      steps=int(sample_steps), guidance=float(guidance), seed=int(cfg.seed), returns=returns,
+                      reward_fn=reward_fn, autocast_bf16=args.autocast_bf16)
         ev.update(step=step, eval_seconds=round(time.time() - t0, 1))
         record["evaluations"].append(ev)
         write_json(out, record)
@@ -140,12 +185,13 @@ def main() -> None:
               f"spearman(score) {ev['spearman_sample_score_vs_condition_score']:.3f} "
               + " ".join(f"B{k}:{v['sample_score']:.0f}/{v['target_block_score']:.0f}"
                          for k, v in ev["per_condition_block"].items()), flush=True)
-        if step >= args.steps:
+        out_of_time = args.max_minutes is not None and time.time() - started > 60 * args.max_minutes
+        if step >= args.steps or out_of_time:
             break
         nxt = min(args.steps, step + args.eval_every)
         res = train_diffuser(diffuser, buffer, steps=nxt, lr=lr, grad_clip=None if clip is None else float(clip),
                              checkpoint_dir=work, checkpoint_every=500, resume=True, progress=False,
-                             seed=int(cfg.seed))
+                             seed=int(cfg.seed), device=device, autocast_bf16=args.autocast_bf16)
         step = int(res["step"])
         record.setdefault("train", []).append({"to_step": step, "wall_time_s": round(res["wall_time_s"], 1),
                                                "final_loss": res["final_loss"]})

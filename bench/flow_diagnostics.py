@@ -48,14 +48,19 @@ def spearman(a: torch.Tensor, b: torch.Tensor) -> float:
     return correlations(a, b)["spearman"] if a.numel() >= 3 else float("nan")
 
 
-def load_run(run: Path):
+def load_run(run: Path, *, with_returns: bool = False):
     """``(cfg, trajectories)`` of an FTB run directory: its resolved config and its dataset
-    (``observation``, ``action``, ``mask``), rebuilt from the cache with the run's settings."""
+    (``observation``, ``action``, ``mask``), rebuilt from the cache with the run's settings.
+    ``with_returns=True`` also returns the dataset's true returns ``[N]`` (recorded rewards)."""
     cfg = OmegaConf.load(run / "config.yaml")
     name = str(cfg.env.name)
     trajs, _ = make_dataset(name, **dataset_kwargs(name, cfg.dataset, max_episode_steps=int(cfg.env.max_episode_steps),
                                                    progress=False))
-    return cfg, trajs.select("observation", "action", "mask")
+    out = trajs.select("observation", "action", "mask")
+    if not with_returns:
+        return cfg, out
+    returns = (trajs.get(("next", "reward")).reshape(trajs.batch_size).double() * trajs.get("mask")).sum(-1)
+    return cfg, out, returns
 
 
 def sampling_settings(cfg, *, sampler: str | None = None, steps: int | None = None,
