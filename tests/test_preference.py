@@ -368,3 +368,21 @@ def test_score_model_checkpoint_roundtrip_and_clear_errors(tmp_path):
     torch.save({"kind": "something.else"}, tmp_path / "foreign.pt")
     with pytest.raises(ValueError, match="not a torchrl_ftb.score_model"):
         load_score_model(tmp_path / "foreign.pt")
+
+
+def test_ensemble_sequential_members_match_vmap_values_and_gradients():
+    trajs = make_toy_dataset(num_trajectories=4, horizon=6, seed=0)
+    model = ScoreModel(3, 2, num_cells=8, num_members=3, seed=0)
+    step = model.reward_module.module
+    td = TensorDict({"observation": trajs["observation"], "action": trajs["action"]}, trajs.batch_size)
+    params = list(step.net.params_td.values(True, True))
+    seq = step.members_sequential(td)
+    vm = step.net(td.clone(False)).get("reward")
+    torch.testing.assert_close(seq, vm)
+    g_seq = torch.autograd.grad(seq.square().sum(), params)
+    g_vm = torch.autograd.grad(vm.square().sum(), params)
+    for a, b in zip(g_seq, g_vm):
+        torch.testing.assert_close(a, b)
+    # the members differ, and the CPU path is the sequential one
+    assert not torch.allclose(seq[0], seq[1])
+    torch.testing.assert_close(step.members(td["observation"], td["action"]), seq)
