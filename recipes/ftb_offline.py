@@ -44,7 +44,14 @@ from torchrl_ftb.data.labels import load_labels, make_scripted_labels, make_teac
 from torchrl_ftb.datasets import dataset_kwargs, make_dataset
 from torchrl_ftb.diffusion import DiffusionSampler, get_preset, load_diffuser, make_diffuser, train_diffuser
 from torchrl_ftb.diffusion.train import CHECKPOINT_NAME
-from torchrl_ftb.envs import check_env_matches, env_kind, make_env, normalized_score_fn, true_reward_fn
+from torchrl_ftb.envs import (
+    check_env_matches,
+    env_kind,
+    make_env,
+    normalized_score_fn,
+    observation_layout,
+    true_reward_fn,
+)
 from torchrl_ftb.flow import FlowToBetter
 from torchrl_ftb.policy import (
     evaluate_policy,
@@ -271,6 +278,12 @@ def stage_diffuser(cfg, run: RunDir, trajs, block_ids, obs_dim, act_dim, device,
     d = cfg.diffuser
     horizon = int(trajs.batch_size[1])
     overrides = {} if d.overrides is None else OmegaConf.to_container(d.overrides, resolve=True)
+    if d.get("observation_structure"):
+        layout = observation_layout(str(cfg.env.name))
+        if not layout:
+            raise ValueError(f"diffuser.observation_structure=true: no known observation structure for env "
+                             f"{cfg.env.name!r} (only Meta-World's stacked frames and goal)")
+        overrides = {**layout, **overrides}
     # data=: fits the normaliser on the dataset's valid steps and leaves its constant dims undiffused
     diffuser = make_diffuser(str(d.preset), obs_dim=obs_dim, action_dim=act_dim, horizon=horizon, data=trajs,
                              **overrides).to(device)

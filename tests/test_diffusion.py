@@ -355,3 +355,44 @@ def _bypass_attention(net: TemporalUnet) -> TemporalUnet:
         level[1] = _Skip()
     net.mid[1] = _Skip()
     return net
+
+
+def _with_stacked_frame_and_goal(data):
+    """Toy obs [x(3)] -> [x(3), x one step back (3), goal(1) constant per trajectory] (7 dims)."""
+    obs, mask = data["observation"], data["mask"]
+    prev = torch.cat([obs[:, :1], obs[:, :-1]], 1)
+    goal = torch.linspace(-1, 1, obs.shape[0])[:, None, None].expand(-1, obs.shape[1], 1)
+    out = data.clone()
+    out.set("observation", torch.cat([obs, prev, goal], -1) * mask[..., None])
+    return out
+
+
+def test_observation_structure_lagged_and_time_constant_dims(data, tmp_path):
+    data7 = _with_stacked_frame_and_goal(data)
+    layout = dict(lagged_dims=[(3, 0), (4, 1), (5, 2)], time_constant_dims=[6])
+    torch.manual_seed(0)
+    d = make_diffuser("tiny", obs_dim=7, action_dim=2, horizon=H, data=data7, **layout)
+    # the three lagged dims are not diffused (the goal is: it varies across trajectories)
+    assert d.transition_dim == 7 - 3 + 2 + 1 and d.static_dims == ()
+    batch = _pairs(data7, torch.arange(8), torch.arange(8, 16))
+    train_diffuser(d, lambda: batch, steps=2, lr=1e-2, progress=False)
+    sample = d.generate(data7[:4], sampler="ddpm", steps=3)
+    obs, m = sample["observation"], sample["mask"]
+    pair = m[:, 1:] & m[:, :-1]
+    # the stacked previous frame is exact, by construction, and the goal is constant in time
+    assert torch.equal(obs[:, 1:, 3:6][pair], obs[:, :-1, 0:3][pair])
+    assert torch.equal(obs[:, 0, 3:6], obs[:, 0, 0:3])
+    goal = obs[..., 6]
+    assert torch.allclose(goal[m], goal[:, :1].expand_as(goal)[m])
+    # the same decoding applies to real data: it leaves a consistent trajectory unchanged
+    raw = d.raw_data_from_td(data7)
+    torch.testing.assert_close(d.apply_observation_structure(raw, data7["mask"]) * data7["mask"][..., None],
+                               raw * data7["mask"][..., None])
+    # the layout travels with the checkpoint
+    d2 = load_diffuser(save_diffuser(d, tmp_path / "layout.pt"))
+    assert d2.lagged_dims == d.lagged_dims and d2.time_constant_dims == (6,)
+    # malformed layouts are clear errors
+    with pytest.raises(ValueError, match="no target may be a source"):
+        make_diffuser("tiny", obs_dim=7, action_dim=2, horizon=H, lagged_dims=[(3, 0), (0, 1)])
+    with pytest.raises(ValueError, match="observation dims"):
+        make_diffuser("tiny", obs_dim=7, action_dim=2, horizon=H, lagged_dims=[(7, 0)])

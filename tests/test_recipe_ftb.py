@@ -131,6 +131,9 @@ def test_bad_config_is_a_clear_error(tmp_path):
         recipe.run(_cfg(tmp_path / "b", "preset=gpu"))
     with pytest.raises(ValueError, match="teacher"):
         recipe.run(_cfg(tmp_path / "c", "labels.teacher=oracle"))
+    # the toy env's observation has no stacked frames to rebuild
+    with pytest.raises(ValueError, match="no known observation structure for env 'toy'"):
+        recipe.run(_cfg(tmp_path / "e", "diffuser.observation_structure=true"))
     # a dataset whose dims do not match the env
     from torchrl_ftb.envs import check_env_matches
     from torchrl_ftb.testing import MetaWorldMockEnv, make_toy_dataset

@@ -15,6 +15,14 @@ one task) are not diffused -- they carry no information, yet the denoiser would 
 per-step capacity reproducing their noise. They are filled with their constant on decoding.
 :func:`~torchrl_ftb.diffusion.make_diffuser` finds them from the data (``data=``).
 
+**Observation structure** (optional, e.g. Meta-World's): ``lagged_dims`` are pairs
+``(target, source)`` of observation dimensions with ``obs[t, target] = obs[t - 1, source]``
+(a stacked previous frame; at ``t = 0`` the source's own value). Targets are not diffused
+but rebuilt from the generated source on decoding, so generated trajectories satisfy the
+frame stack exactly. ``time_constant_dims`` (e.g. a goal) are diffused but decoded as their
+mean over the valid steps, constant within each trajectory as in the data. Both are off by
+default (the paper diffuses the raw observation).
+
 The denoising networks (``backbone`` + ``encoder``, which holds the learned null condition)
 live in ``networks``; ``ema`` is a :class:`torch.optim.swa_utils.AveragedModel` copy of them
 (updated by :meth:`update_ema`, used by :meth:`generate` by default). The normaliser's
@@ -76,6 +84,9 @@ class TrajectoryDiffuser(nn.Module):
             ``None`` disables clipping (see :mod:`torchrl_ftb.diffusion.process`).
         static_dims: indices into ``[obs, action (, reward)]`` that are constant in the data
             and not diffused (filled with the normaliser's mean on decoding).
+        lagged_dims: ``(target, source)`` observation-index pairs, ``obs[t, target] =
+            obs[t - 1, source]``: targets are not diffused but copied on decoding.
+        time_constant_dims: observation indices decoded as their per-trajectory mean.
     """
 
     def __init__(
@@ -94,6 +105,8 @@ class TrajectoryDiffuser(nn.Module):
         horizon: int | None = None,
         clip_margin: float | None = 0.5,
         static_dims: Sequence[int] = (),
+        lagged_dims: Sequence[Sequence[int]] = (),
+        time_constant_dims: Sequence[int] = (),
     ) -> None:
         super().__init__()
         self.clip_margin = clip_margin
@@ -105,8 +118,16 @@ class TrajectoryDiffuser(nn.Module):
         if len(static) >= self.data_dim:
             raise ValueError("static_dims: at least one data dimension must be diffused")
         self.static_dims = tuple(static)
+        self.lagged_dims = self._check_lagged(lagged_dims, obs_dim)
+        self.time_constant_dims = tuple(sorted({int(i) for i in time_constant_dims}))
+        if self.time_constant_dims and (self.time_constant_dims[0] < 0 or self.time_constant_dims[-1] >= obs_dim):
+            raise ValueError(f"time_constant_dims {list(self.time_constant_dims)} out of range for {obs_dim} "
+                             "observation dims")
+        skipped = set(static) | {t for t, _ in self.lagged_dims}
+        if len(skipped) >= self.data_dim:
+            raise ValueError("static_dims + lagged_dims: at least one data dimension must be diffused")
         self.register_buffer("diffused_index",
-                             torch.tensor([i for i in range(self.data_dim) if i not in set(static)]),
+                             torch.tensor([i for i in range(self.data_dim) if i not in skipped]),
                              persistent=False)
         self.unconditional = bool(unconditional)
         if not 0.0 <= cond_drop_prob < 1.0:
@@ -117,7 +138,7 @@ class TrajectoryDiffuser(nn.Module):
         if backbone.transition_dim != self.transition_dim:
             raise ValueError(f"backbone.transition_dim={backbone.transition_dim} but the diffuser needs "
                              f"{self.transition_dim} (obs {obs_dim} + action {action_dim}"
-                             f"{' + reward 1' if reward_channel else ''} - static {len(static)} + validity 1)")
+                             f"{' + reward 1' if reward_channel else ''} - static/lagged {len(skipped)} + validity 1)")
         if normalizer.dim != self.data_dim:
             raise ValueError(f"normalizer.dim={normalizer.dim} but the data have {self.data_dim} dims")
         if unconditional != (encoder is None):
@@ -137,6 +158,16 @@ class TrajectoryDiffuser(nn.Module):
         self.config: dict | None = None
 
     # ------------------------------------------------------------------ layout
+    @staticmethod
+    def _check_lagged(pairs: Sequence[Sequence[int]], obs_dim: int) -> tuple[tuple[int, int], ...]:
+        out = tuple(sorted((int(t), int(s)) for t, s in pairs))
+        targets = [t for t, _ in out]
+        if any(not (0 <= i < obs_dim) for pair in out for i in pair):
+            raise ValueError(f"lagged_dims {[list(p) for p in out]}: indices must be observation dims in [0, {obs_dim})")
+        if len(set(targets)) != len(targets) or set(targets) & {s for _, s in out}:
+            raise ValueError(f"lagged_dims {[list(p) for p in out]}: each target once, and no target may be a source")
+        return out
+
     @property
     def data_dim(self) -> int:
         """Size of ``[obs, action (, reward)]``."""
@@ -144,8 +175,8 @@ class TrajectoryDiffuser(nn.Module):
 
     @property
     def diffused_dim(self) -> int:
-        """Number of data dimensions that are diffused (``data_dim`` minus the static ones)."""
-        return self.data_dim - len(self.static_dims)
+        """Number of data dimensions that are diffused (``data_dim`` minus static and lagged ones)."""
+        return int(self.diffused_index.numel())
 
     @property
     def transition_dim(self) -> int:
@@ -215,11 +246,13 @@ class TrajectoryDiffuser(nn.Module):
 
     def _diffused(self, z: torch.Tensor) -> torch.Tensor:
         """The non-static dimensions of a normalised ``[..., data_dim]`` tensor."""
-        return z if not self.static_dims else z.index_select(-1, self.diffused_index.to(z.device))
+        if self.diffused_dim == self.data_dim:
+            return z
+        return z.index_select(-1, self.diffused_index.to(z.device))
 
     def _full(self, z: torch.Tensor) -> torch.Tensor:
-        """Scatter diffused dims ``[..., diffused_dim]`` into ``[..., data_dim]`` (static dims: z = 0)."""
-        if not self.static_dims:
+        """Scatter diffused dims ``[..., diffused_dim]`` into ``[..., data_dim]`` (others: z = 0)."""
+        if self.diffused_dim == self.data_dim:
             return z
         full = z.new_zeros(*z.shape[:-1], self.data_dim)
         full[..., self.diffused_index.to(z.device)] = z
@@ -242,12 +275,31 @@ class TrajectoryDiffuser(nn.Module):
         """Model-space sample ``[B, H, transition_dim]`` -> trajectory batch (raw units, padded zeros)."""
         mask = self.detect_mask(x[..., -1])
         # static dims sit at z = 0, i.e. their constant (the fitted mean) in raw units
-        raw = self.normalizer.unnormalize(self._full(x[..., :-1])) * mask[..., None]
+        raw = self.apply_observation_structure(self.normalizer.unnormalize(self._full(x[..., :-1])), mask)
+        raw = raw * mask[..., None]
         o, a = self.obs_dim, self.action_dim
         out = {"observation": raw[..., :o], "action": raw[..., o:o + a], "mask": mask}
         if self.reward_channel:
             out["next"] = {"reward": raw[..., o + a:o + a + 1]}
         return TensorDict(out, batch_size=x.shape[:2], device=x.device)
+
+    def apply_observation_structure(self, raw: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """Rebuild lagged dims from their sources (one step back) and set time-constant dims to
+        their mean over the valid steps, on raw ``[B, H, data_dim]`` data with ``mask [B, H]``."""
+        if not (self.lagged_dims or self.time_constant_dims):
+            return raw
+        raw = raw.clone()
+        if self.lagged_dims:
+            tgt = torch.tensor([t for t, _ in self.lagged_dims], device=raw.device)
+            src = torch.tensor([s for _, s in self.lagged_dims], device=raw.device)
+            shifted = torch.cat([raw[:, :1, src], raw[:, :-1, src]], 1)
+            raw[..., tgt] = shifted
+        if self.time_constant_dims:
+            dims = torch.tensor(self.time_constant_dims, device=raw.device)
+            w = mask.to(raw.dtype)[..., None]
+            mean = (raw[..., dims] * w).sum(1, keepdim=True) / w.sum(1, keepdim=True).clamp_min(1.0)
+            raw[..., dims] = mean.expand(-1, raw.shape[1], -1)
+        return raw
 
     def x0_bounds(self) -> tuple[torch.Tensor, torch.Tensor] | None:
         """Clamp range of denoised samples in model space (``None`` if clipping is off)."""

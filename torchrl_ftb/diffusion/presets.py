@@ -115,6 +115,8 @@ def make_diffuser(
     unconditional: bool = False,
     data: TensorDictBase | None = None,
     static_dims: Sequence[int] | None = None,
+    lagged_dims: Sequence[Sequence[int]] | None = None,
+    time_constant_dims: Sequence[int] | None = None,
     **overrides,
 ) -> TrajectoryDiffuser:
     """Build a :class:`TrajectoryDiffuser` from a preset, with model-field overrides.
@@ -131,6 +133,10 @@ def make_diffuser(
             :class:`TrajectoryDiffuser`). Without ``data``, call ``fit_normalizer`` yourself.
         static_dims: indices into ``[obs, action (, reward)]`` not to diffuse (default: none, or
             the constant ones of ``data``).
+        lagged_dims: ``(target, source)`` observation pairs with ``obs[t, target] =
+            obs[t - 1, source]`` (a stacked previous frame): targets are rebuilt, not diffused
+            (e.g. :data:`torchrl_ftb.envs.METAWORLD_OBSERVATION_LAYOUT`).
+        time_constant_dims: observation dims decoded as their per-trajectory mean (a goal).
         **overrides: any key of the preset's ``model`` section (e.g. ``hidden_dim=64``).
 
     Returns:
@@ -156,7 +162,9 @@ def make_diffuser(
         if static_dims is None:
             static_dims = normalizer.constant_dims()
     static_dims = sorted({int(i) for i in (static_dims or ())})
-    diffused = data_dim - len(static_dims)
+    lagged_dims = sorted([int(t), int(src)] for t, src in (lagged_dims or ()))
+    time_constant_dims = sorted({int(i) for i in (time_constant_dims or ())})
+    diffused = data_dim - len(set(static_dims) | {t for t, _ in lagged_dims})
     # Everything the output knows about x_t per step passes the full-resolution level (hidden *
     # mults[0] channels); fewer channels than diffused dims cap the eps-MSE at ~1 - capacity/dims
     # even at t = T - 1 where eps ~ x_t. (Before level 0's skip was used, the cap was half that:
@@ -198,9 +206,12 @@ def make_diffuser(
         horizon=horizon,
         clip_margin=cfg["clip_margin"],
         static_dims=static_dims,
+        lagged_dims=lagged_dims,
+        time_constant_dims=time_constant_dims,
     )
     diffuser.config = {"preset": preset, "obs_dim": int(obs_dim), "action_dim": int(action_dim),
                        "horizon": int(horizon), "reward_channel": bool(reward_channel),
                        "unconditional": bool(unconditional), "static_dims": list(static_dims),
+                       "lagged_dims": lagged_dims, "time_constant_dims": time_constant_dims,
                        "global_condition": bool(cfg["global_condition"]), **overrides}
     return diffuser

@@ -8,6 +8,7 @@ from torchrl_ftb.envs.factory import (
     env_kind,
     make_env,
     normalized_score_fn,
+    observation_layout,
     true_reward_fn,
 )
 from torchrl_ftb.envs.locomotion import (
@@ -22,6 +23,7 @@ from torchrl_ftb.envs.locomotion import (
 )
 from torchrl_ftb.envs.metaworld import (
     METAWORLD_MAX_EPISODE_STEPS,
+    METAWORLD_OBSERVATION_LAYOUT,
     SuccessInfoReader,
     check_metaworld_task,
     configure_goal,
@@ -39,6 +41,7 @@ __all__ = [
     "EnvKind",
     "LOCOMOTION_ENVS",
     "METAWORLD_MAX_EPISODE_STEPS",
+    "METAWORLD_OBSERVATION_LAYOUT",
     "SuccessInfoReader",
     "check_env_matches",
     "check_metaworld_task",
@@ -57,6 +60,7 @@ __all__ = [
     "metaworld_tasks",
     "metaworld_true_reward",
     "normalized_score_fn",
+    "observation_layout",
     "oracle_step",
     "scripted_policy",
     "true_reward_fn",

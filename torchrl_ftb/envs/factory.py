@@ -34,9 +34,17 @@ from torchrl_ftb.envs.locomotion import (
     locomotion_true_reward,
     make_locomotion_env,
 )
-from torchrl_ftb.envs.metaworld import make_metaworld_env, metaworld_tasks, metaworld_true_reward
+from torchrl_ftb.envs.metaworld import (
+    METAWORLD_OBSERVATION_LAYOUT,
+    make_metaworld_env,
+    metaworld_tasks,
+    metaworld_true_reward,
+)
 
-__all__ = ["EnvKind", "check_env_matches", "env_kind", "make_env", "normalized_score_fn", "true_reward_fn"]
+__all__ = [
+    "EnvKind", "check_env_matches", "env_kind", "make_env", "normalized_score_fn", "observation_layout",
+    "true_reward_fn",
+]
 
 EnvKind = Literal["toy", "metaworld", "locomotion"]
 
@@ -122,6 +130,20 @@ def make_env(
 
         env.append_transform(StepCounter(max_steps=int(max_episode_steps)))
     return env
+
+
+def observation_layout(name: str) -> dict:
+    """Known structure of an env's observation, as :func:`~torchrl_ftb.diffusion.make_diffuser`
+    keyword arguments (``lagged_dims``, ``time_constant_dims``); ``{}`` when there is none
+    (toy, locomotion).
+
+    Example:
+        >>> observation_layout("toy")
+        {}
+        >>> observation_layout("button-press-v3")["time_constant_dims"]
+        (36, 37, 38)
+    """
+    return dict(METAWORLD_OBSERVATION_LAYOUT) if env_kind(name) == "metaworld" else {}
 
 
 def _metaworld_reward(task: str, observation: torch.Tensor, action: torch.Tensor) -> torch.Tensor:

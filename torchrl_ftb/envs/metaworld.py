@@ -30,6 +30,7 @@ from torchrl.envs.gym_like import BaseInfoDictReader
 
 __all__ = [
     "METAWORLD_MAX_EPISODE_STEPS",
+    "METAWORLD_OBSERVATION_LAYOUT",
     "SuccessInfoReader",
     "metaworld_tasks",
     "check_metaworld_task",
@@ -43,6 +44,14 @@ __all__ = [
 ]
 
 METAWORLD_MAX_EPISODE_STEPS = 500
+
+#: Structure of a v3 observation (39 = current frame 0:18, previous frame 18:36, goal 36:39):
+#: ``obs[t, 18 + i] = obs[t - 1, i]`` and a goal constant within an episode. Keyword arguments
+#: of :func:`torchrl_ftb.diffusion.make_diffuser` (``lagged_dims``, ``time_constant_dims``).
+METAWORLD_OBSERVATION_LAYOUT = {
+    "lagged_dims": tuple((18 + i, i) for i in range(18)),
+    "time_constant_dims": (36, 37, 38),
+}
 
 
 def _quiet_metaworld() -> None:
