@@ -7,6 +7,9 @@ TensorDictModule, its loss a LossModule, block pairs come from a TensorDictRepla
 the diffuser sampler is a TensorDictModule (``"condition"`` -> ``"sample"``), and the flowed
 set lands in a ReplayBuffer for BC.
 """
+import tempfile
+from pathlib import Path
+
 import torch
 
 from torchrl_ftb.data import ReturnTeacher, make_scripted_labels
@@ -15,8 +18,10 @@ from torchrl_ftb.flow import FlowToBetter
 from torchrl_ftb.policy import evaluate_policy, make_bc_actor, train_bc
 from torchrl_ftb.preference import (
     ScoreModel,
+    load_score_model,
     make_block_pair_buffer,
     make_blocks,
+    save_score_model,
     score_trajectories,
     train_score_model,
 )
@@ -31,6 +36,8 @@ def main() -> None:
     # 1. preference augmentation: Bradley-Terry score model -> K ascending blocks
     score_model = ScoreModel(3, 2, num_cells=64, seed=0).fit_normalizer(trajs)  # r_psi on z-scored obs
     train_score_model(score_model, labels, steps=300, lr=1e-3, eval_fraction=0.0, progress=False)
+    with tempfile.TemporaryDirectory() as tmp:  # checkpoints load with torch.load(weights_only=True)
+        score_model = load_score_model(save_score_model(score_model, Path(tmp) / "score_model.pt"))
     scores = score_trajectories(score_model, trajs)
     blocks = make_blocks(scores, 5, seed=0)
 
