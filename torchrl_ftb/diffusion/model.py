@@ -245,7 +245,7 @@ class TrajectoryDiffuser(nn.Module):
         return self._diffused(torch.where(mask.bool()[..., None], self.normalizer.normalize(raw), torch.zeros_like(raw)))
 
     def _diffused(self, z: torch.Tensor) -> torch.Tensor:
-        """The non-static dimensions of a normalised ``[..., data_dim]`` tensor."""
+        """The diffused (non-static, non-lagged) dimensions of a normalised ``[..., data_dim]`` tensor."""
         if self.diffused_dim == self.data_dim:
             return z
         return z.index_select(-1, self.diffused_index.to(z.device))
