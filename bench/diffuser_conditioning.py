@@ -37,12 +37,11 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
 from flow_diagnostics import (  # noqa: E402
-    load_run, parse_run_args, run_parser, sampling_settings, spearman,
+    load_run, parse_run_args, run_parser, sample_true_return, sampling_settings, spearman,
 )
 
 from torchrl_ftb.diffusion import get_preset, load_diffuser, make_diffuser, train_diffuser  # noqa: E402
 from torchrl_ftb.envs import true_reward_fn  # noqa: E402
-from torchrl_ftb.flow import masked_true_return  # noqa: E402
 from torchrl_ftb.preference import load_score_model, make_block_pair_buffer, score_trajectories  # noqa: E402
 from torchrl_ftb.provenance import run_record, write_json  # noqa: E402
 
@@ -66,10 +65,8 @@ def evaluate(diffuser, model, trajs, scores, ids, *, per_block: int, sampler: st
                                autocast_bf16=autocast_bf16).to("cpu")
     s_new = score_trajectories(model, sample).double()
     true_new = None
-    if reward_fn is not None and returns is not None:  # the oracle's return of the (action-clipped) samples
-        clipped = sample.clone()
-        clipped["action"] = clipped["action"].clamp(-1, 1) * clipped["mask"][..., None]
-        true_new = masked_true_return(clipped, reward_fn).double()
+    if reward_fn is not None and returns is not None:
+        true_new = sample_true_return(sample, reward_fn).double()
     length = sample["mask"].sum(-1).double()
     per = {}
     for k in range(num_blocks - 1):

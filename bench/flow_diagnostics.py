@@ -48,6 +48,14 @@ def spearman(a: torch.Tensor, b: torch.Tensor) -> float:
     return correlations(a, b)["spearman"] if a.numel() >= 3 else float("nan")
 
 
+def sample_true_return(samples, reward_fn) -> torch.Tensor:
+    """True-reward-oracle return ``[N]`` of generated trajectories, actions clipped to the env's
+    [-1, 1] first (as the flow does before accepting a sample)."""
+    clipped = samples.clone()
+    clipped["action"] = clipped["action"].clamp(-1, 1) * clipped["mask"][..., None]
+    return masked_true_return(clipped, reward_fn)
+
+
 def load_run(run: Path, *, with_returns: bool = False):
     """``(cfg, trajectories)`` of an FTB run directory: its resolved config and its dataset
     (``observation``, ``action``, ``mask``), rebuilt from the cache with the run's settings.
@@ -165,10 +173,8 @@ def main() -> None:
     better = improves(normalized_scores(new_scores, s_min, s_max), normalized_scores(scores[top], s_min, s_max),
                       float(f.threshold))
     accepted = valid & better
-    clipped = samples.clone()
-    clipped["action"] = clipped["action"].clamp(-1, 1) * clipped["mask"][..., None]
     true_old = masked_true_return(cond, reward_fn)
-    true_new = masked_true_return(clipped, reward_fn)
+    true_new = sample_true_return(samples, reward_fn)
     d_score = normalized_scores(new_scores, s_min, s_max) - normalized_scores(scores[top], s_min, s_max)
     d_true = true_new - true_old
     d_len = (samples["mask"].sum(-1) - cond["mask"].sum(-1)).double()
