@@ -39,7 +39,7 @@ from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDict
 
 from torchrl_ftb.analysis import novelty, plot_flow_curves, plot_histograms
-from torchrl_ftb.data import atomic_torch_save, atomic_write_text, trajectories_to_flat
+from torchrl_ftb.data import atomic_torch_save, atomic_write_text, read_checkpoint, trajectories_to_flat
 from torchrl_ftb.data.labels import load_labels, make_scripted_labels, make_teacher, save_labels, true_return
 from torchrl_ftb.datasets import dataset_kwargs, make_dataset
 from torchrl_ftb.diffusion import DiffusionSampler, get_preset, load_diffuser, make_diffuser, train_diffuser
@@ -186,10 +186,7 @@ def _load_ckpt(path: Path, kind: str) -> dict:
     """``torch.load(weights_only=True)`` with a clear error for missing/corrupt/foreign files."""
     if not path.is_file():
         raise FileNotFoundError(f"{path}: checkpoint missing although stages.json marks it done")
-    try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as err:  # corrupt / truncated
-        raise ValueError(f"{path}: corrupt or unreadable checkpoint ({type(err).__name__}: {err})") from err
+    ckpt = read_checkpoint(path)
     if not isinstance(ckpt, dict) or ckpt.get("kind") != kind:
         raise ValueError(f"{path}: not a {kind} checkpoint")
     return ckpt

@@ -43,6 +43,7 @@ __all__ = [
     "atomic_directory",
     "atomic_file",
     "atomic_torch_save",
+    "read_checkpoint",
     "atomic_write_text",
 ]
 
@@ -247,6 +248,20 @@ def atomic_torch_save(obj: Any, path: str | os.PathLike) -> None:
     """``torch.save`` to a temp file then ``os.replace``: a crash never leaves a half file."""
     with atomic_file(path) as tmp:
         torch.save(obj, tmp)
+
+
+def read_checkpoint(path: str | os.PathLike, *, what: str = "", map_location: Any = "cpu") -> Any:
+    """``torch.load(path, weights_only=True)`` with clear errors: ``FileNotFoundError`` for a
+    missing file, ``ValueError`` for a truncated, corrupt or non-``weights_only`` one (``what``
+    names the checkpoint in both messages, e.g. ``"diffuser"``)."""
+    path = Path(path)
+    label = f"{what} checkpoint" if what else "checkpoint"
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no {label}")
+    try:
+        return torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as err:  # truncated / corrupt / foreign pickle
+        raise ValueError(f"{path}: corrupt or unreadable {label} ({type(err).__name__}: {err})") from err
 
 
 def save_trajectories(

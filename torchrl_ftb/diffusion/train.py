@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import contextlib
 import os
-import pickle
 import time
 from pathlib import Path
 from typing import Any, Callable
@@ -31,7 +30,7 @@ import torch
 from tensordict import TensorDictBase
 from tqdm.auto import tqdm
 
-from torchrl_ftb.data.trajectories import atomic_torch_save
+from torchrl_ftb.data.trajectories import atomic_torch_save, read_checkpoint
 from torchrl_ftb.diffusion.loss import DiffusionLoss
 from torchrl_ftb.diffusion.model import TrajectoryDiffuser
 
@@ -43,13 +42,7 @@ CHECKPOINT_NAME = "diffuser_last.pt"
 
 
 def _read_checkpoint(path: str | os.PathLike, map_location: Any = "cpu") -> dict:
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: no diffuser checkpoint")
-    try:
-        ckpt = torch.load(path, map_location=map_location, weights_only=True)
-    except (RuntimeError, EOFError, pickle.UnpicklingError, ValueError, OSError) as err:
-        raise ValueError(f"{path}: corrupt or unreadable diffuser checkpoint ({type(err).__name__}: {err})") from err
+    ckpt = read_checkpoint(path, what="diffuser", map_location=map_location)
     if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
         raise ValueError(f"{path}: not a torchrl_ftb diffuser checkpoint (missing format tag)")
     if ckpt.get("format_version") != CHECKPOINT_VERSION:

@@ -33,7 +33,7 @@ from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.modules import MLP
 
-from torchrl_ftb.data.trajectories import atomic_torch_save, observation_statistics
+from torchrl_ftb.data.trajectories import atomic_torch_save, observation_statistics, read_checkpoint
 
 __all__ = ["SCORE_MODEL_CHECKPOINT", "ScoreModel", "load_score_model", "save_score_model", "score_trajectories"]
 
@@ -410,13 +410,7 @@ def load_score_model(
         FileNotFoundError: no file.
         ValueError: corrupt file, not a score-model checkpoint, or weights that do not fit.
     """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: no score-model checkpoint")
-    try:
-        ckpt = torch.load(path, map_location=map_location, weights_only=True)
-    except Exception as err:  # truncated / corrupt / foreign pickle
-        raise ValueError(f"{path}: corrupt or unreadable score-model checkpoint ({type(err).__name__}: {err})") from err
+    ckpt = read_checkpoint(path, what="score-model", map_location=map_location)
     if not isinstance(ckpt, dict) or ckpt.get("kind") != SCORE_MODEL_CHECKPOINT or "state_dict" not in ckpt:
         raise ValueError(f"{path}: not a {SCORE_MODEL_CHECKPOINT} checkpoint")
     hparams = ckpt.get("hparams") or {}
