@@ -39,7 +39,7 @@ def _train(labels, obs_dim: int, act_dim: int, args, seed: int, *, data, eval_la
     from torchrl_ftb.preference import ScoreModel, train_score_model
 
     model = ScoreModel(obs_dim, act_dim, num_cells=args.num_cells, num_layers=args.num_layers, seed=seed,
-                       num_members=args.members)
+                       num_members=args.members, reward_activation=args.reward_activation)
     if args.normalize_obs:
         model.fit_normalizer(data)
     start = time.perf_counter()
@@ -152,6 +152,8 @@ def main() -> None:
     parser.add_argument("--num-cells", type=int, default=256)
     parser.add_argument("--num-layers", type=int, default=3)
     parser.add_argument("--members", type=int, default=1, help="score-model ensemble size (score = member mean)")
+    parser.add_argument("--reward-activation", default="identity", choices=["identity", "sigmoid"],
+                        help="r_psi output squashing (ScoreModel(reward_activation=...))")
     parser.add_argument("--episodes-per-group", type=int, default=25)
     parser.add_argument("--noise", type=float, default=1.0)
     parser.add_argument("--workers", type=int, default=1)

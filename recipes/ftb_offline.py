@@ -212,6 +212,7 @@ def stage_score_model(cfg, run: RunDir, trajs, labels, obs_dim, act_dim, device,
     sm_cfg = cfg.score_model
     model = ScoreModel(obs_dim, act_dim, num_cells=int(sm_cfg.num_cells), num_layers=int(sm_cfg.num_layers),
                        gamma=float(sm_cfg.gamma), num_members=int(sm_cfg.get("num_members", 1)),
+                       reward_activation=str(sm_cfg.get("reward_activation", "identity")),
                        seed=int(cfg.seed), device=device)
     path = run.ckpt / "score_model.pt"
     if run.done("score_model"):

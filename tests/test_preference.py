@@ -386,3 +386,35 @@ def test_ensemble_sequential_members_match_vmap_values_and_gradients():
     # the members differ, and the CPU path is the sequential one
     assert not torch.allclose(seq[0], seq[1])
     torch.testing.assert_close(step.members(td["observation"], td["action"]), seq)
+
+
+def test_sigmoid_reward_activation_is_one_definition_and_saved(tmp_path, toy):
+    """``reward_activation="sigmoid"``: r_psi in (0, 1) for the score, the relabelling module and
+    the saved model alike; a trained one still ranks by the labels; bad names are refused."""
+    model = ScoreModel(3, 2, num_cells=16, num_members=2, reward_activation="sigmoid", seed=0)
+    rewards = model.step_rewards(toy)
+    assert bool((rewards > 0).all() and (rewards < 1).all())
+    mask = toy["mask"]
+    torch.testing.assert_close(model(toy)["score"], (rewards.mean(0) * mask).sum(-1))
+    flat = toy[mask].select("observation", "action")
+    torch.testing.assert_close(model.reward_module(flat)["next", "reward"].squeeze(-1), rewards.mean(0)[mask])
+    # a shorter prefix of the same trajectory scores strictly lower (positive per-step reward)
+    cut = toy[:1].clone()
+    cut["mask"][0, 16:] = False
+    assert float(model(cut)["score"][0]) < float(model(toy[:1])["score"][0])
+    loaded = load_score_model(save_score_model(model, tmp_path / "s.pt"))
+    assert loaded.hparams["reward_activation"] == "sigmoid"
+    torch.testing.assert_close(score_trajectories(loaded, toy), score_trajectories(model, toy))
+    single = ScoreModel(3, 2, num_cells=32, reward_activation="sigmoid", seed=0)
+    train_score_model(single, scripted_labels(toy, 30, seed=1), steps=60, lr=5e-3, eval_fraction=0.0,
+                      progress=False)
+    assert correlations(score_trajectories(single, toy), toy_returns(toy))["spearman"] > 0.8
+    with pytest.raises(ValueError, match="reward_activation"):
+        ScoreModel(3, 2, reward_activation="relu")
+
+
+def test_loading_into_a_model_with_other_numbers_is_refused(tmp_path):
+    path = save_score_model(ScoreModel(3, 2, num_cells=8, reward_activation="sigmoid", seed=0), tmp_path / "s.pt")
+    with pytest.raises(ValueError, match="reward_activation"):
+        load_score_model(path, model=ScoreModel(3, 2, num_cells=8))
+    assert load_score_model(path, model=ScoreModel(3, 2, num_cells=8, reward_activation="sigmoid")) is not None

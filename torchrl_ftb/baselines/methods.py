@@ -108,7 +108,8 @@ def train_reward_model(
         trajs: the dataset (its dimensions, and its observations for the normaliser).
         labels: preference labels (docs/conventions.md).
         num_members: ensemble size (1: IQL + r_ψ / 10%BC by score; > 1: OPRL).
-        model: extra ``ScoreModel`` keyword arguments (``num_cells``, ``num_layers``, ``gamma``)
+        model: extra ``ScoreModel`` keyword arguments (``num_cells``, ``num_layers``, ``gamma``,
+            ``reward_activation``)
             and ``normalize_observations`` (fit the model's observation normaliser on ``trajs``
             before training; default off).
         training: ``train_score_model`` keyword arguments (``steps``, ``lr``, ``batch_size`` ...).

@@ -20,6 +20,7 @@ from torchrl_ftb.preference.pairs import (
     make_labeled_pair_buffer,
 )
 from torchrl_ftb.preference.score import (
+    REWARD_ACTIVATIONS,
     SCORE_MODEL_CHECKPOINT,
     ScoreModel,
     load_score_model,
@@ -29,6 +30,7 @@ from torchrl_ftb.preference.score import (
 from torchrl_ftb.preference.train import split_labels, train_score_model
 
 __all__ = [
+    "REWARD_ACTIVATIONS",
     "BlockPairSampler",
     "BlockWarning",
     "BradleyTerryLoss",

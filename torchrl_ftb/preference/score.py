@@ -35,7 +35,10 @@ from torchrl.modules import MLP
 
 from torchrl_ftb.data.trajectories import atomic_torch_save, observation_statistics, read_checkpoint
 
-__all__ = ["SCORE_MODEL_CHECKPOINT", "ScoreModel", "load_score_model", "save_score_model", "score_trajectories"]
+__all__ = [
+    "REWARD_ACTIVATIONS", "SCORE_MODEL_CHECKPOINT", "ScoreModel", "load_score_model", "save_score_model",
+    "score_trajectories",
+]
 
 
 def _prefixed(prefix: NestedKey | Sequence, key: NestedKey) -> NestedKey:
@@ -48,6 +51,10 @@ def _prefixed(prefix: NestedKey | Sequence, key: NestedKey) -> NestedKey:
 
 def _suffixed(key: NestedKey, suffix: str) -> NestedKey:
     return f"{key}{suffix}" if isinstance(key, str) else (*key[:-1], f"{key[-1]}{suffix}")
+
+
+#: output squashing of the per-step reward ``r_psi`` (``ScoreModel(reward_activation=...)``)
+REWARD_ACTIVATIONS: dict[str, type[nn.Module]] = {"identity": nn.Identity, "sigmoid": nn.Sigmoid}
 
 
 class _StepReward(nn.Module):
@@ -63,8 +70,12 @@ class _StepReward(nn.Module):
         activation_class: type[nn.Module],
         num_members: int,
         device: torch.device | str | None,
+        reward_activation: str = "identity",
     ) -> None:
         super().__init__()
+        if reward_activation not in REWARD_ACTIVATIONS:
+            raise ValueError(f"ScoreModel: reward_activation must be one of {sorted(REWARD_ACTIVATIONS)}, "
+                             f"got {reward_activation!r}")
         mlp = MLP(
             in_features=observation_dim + action_dim,
             out_features=1,
@@ -75,6 +86,7 @@ class _StepReward(nn.Module):
         # fixed internal keys: this td only lives inside _StepReward
         member = TensorDictModule(mlp, in_keys=["observation", "action"], out_keys=["reward"])
         self.num_members = num_members
+        self.squash = REWARD_ACTIVATIONS[reward_activation]()  # applied to every member's output
         self.net = EnsembleModule(member, num_copies=num_members) if num_members > 1 else member
         self.observation_dim = observation_dim
         self.action_dim = action_dim
@@ -101,10 +113,10 @@ class _StepReward(nn.Module):
             batch_size=observation.shape[:-1],
         )
         if self.num_members == 1:
-            return self.net(td).get("reward").unsqueeze(0)
+            return self.squash(self.net(td).get("reward").unsqueeze(0))
         if observation.device.type == "cpu":
-            return self.members_sequential(td)
-        return self.net(td).get("reward")
+            return self.squash(self.members_sequential(td))
+        return self.squash(self.net(td).get("reward"))
 
     def members_sequential(self, td: TensorDictBase) -> torch.Tensor:
         """The ensemble's ``[C, ..., 1]`` rewards one member after another (same parameters and
@@ -151,6 +163,11 @@ class ScoreModel(TensorDictModuleBase):
         num_layers: number of linear layers (Table 4: 3).
         activation_class: hidden activation (Table 4: ReLU).
         gamma: discount of the per-step rewards in the score (default 1.0).
+        reward_activation: squashing of the MLP output into ``r_psi``: ``"identity"`` (default,
+            the paper's Eq. 4) or ``"sigmoid"`` (per-step reward in (0, 1), as the authors' code
+            scores trajectories; the same ``r_psi`` is then trained, scored and relabelled with).
+            Positive per-step rewards make a longer trajectory of equal per-step quality score
+            higher, the prior of tasks whose rewards are positive (Meta-World, locomotion).
         num_members: ensemble size (1 = a single MLP).
         prefix: nested key prefix under which the trajectories are read.
         observation_key, action_key, mask_key: entry names (relative to ``prefix``).
@@ -179,6 +196,7 @@ class ScoreModel(TensorDictModuleBase):
         num_layers: int = 3,
         activation_class: type[nn.Module] = nn.ReLU,
         gamma: float = 1.0,
+        reward_activation: str = "identity",
         num_members: int = 1,
         prefix: NestedKey | Sequence = (),
         observation_key: NestedKey = "observation",
@@ -200,6 +218,7 @@ class ScoreModel(TensorDictModuleBase):
             "observation_dim": int(observation_dim), "action_dim": int(action_dim),
             "num_cells": int(num_cells), "num_layers": int(num_layers),
             "num_members": int(num_members), "gamma": float(gamma),
+            "reward_activation": str(reward_activation),
         }
         with torch.random.fork_rng(devices=[]):
             if seed is not None:
@@ -207,6 +226,7 @@ class ScoreModel(TensorDictModuleBase):
             step = _StepReward(
                 observation_dim, action_dim, num_cells=num_cells, num_layers=num_layers,
                 activation_class=activation_class, num_members=num_members, device=device,
+                reward_activation=reward_activation,
             )
         self.reward_module = TensorDictModule(
             step, in_keys=[observation_key, action_key], out_keys=[("next", "reward")]
@@ -421,7 +441,11 @@ def load_score_model(
             raise ValueError(f"{path}: score-model checkpoint lacks hparams {missing}; pass model= to load into")
         model = ScoreModel(hparams["observation_dim"], hparams["action_dim"], num_cells=hparams["num_cells"],
                            num_layers=hparams["num_layers"], num_members=hparams.get("num_members", 1),
-                           gamma=hparams.get("gamma", 1.0))
+                           gamma=hparams.get("gamma", 1.0),
+                           reward_activation=hparams.get("reward_activation", "identity"))
+    differ = {k: (hparams[k], v) for k, v in model.hparams.items() if k in hparams and hparams[k] != v}
+    if differ:
+        raise ValueError(f"{path}: score-model checkpoint does not fit the model: (file, model) differ in {differ}")
     try:
         model.load_state_dict(ckpt["state_dict"])
     except (RuntimeError, KeyError) as err:
