@@ -98,6 +98,27 @@ def test_metaworld_env_specs_goal_modes_and_time_limit():
     assert not torch.allclose(obs[0], obs[1]) and not torch.allclose(obs[1], obs[2])
 
 
+@pytest.mark.integration
+@pytest.mark.parametrize("policy_task", ["door-open-v3", "door-close-v3"])
+def test_scripted_policies_leave_the_observation_alone(policy_task):
+    """Meta-World's door policies shift parsed positions in place; recorded observations of a
+    cross-env episode must still be the env's (the frame stack stays exact)."""
+    from torchrl_ftb.envs import metaworld_frame_stack_error
+
+    env = make_metaworld_gym_env("button-press-v3", seed=0, random_goal=True)
+    pi = scripted_policy(policy_task)
+    obs, _ = env.reset()
+    recorded = []
+    for _ in range(20):
+        recorded.append(obs)
+        before = obs.copy()
+        obs, *_ = env.step(np.clip(pi(obs), -1 + 1e-5, 1 - 1e-5))
+        assert np.array_equal(recorded[-1], before)
+    td = TensorDict({"observation": torch.tensor(np.array(recorded), dtype=torch.float32)[None],
+                     "mask": torch.ones(1, 20, dtype=torch.bool)}, [1, 20])
+    assert float(metaworld_frame_stack_error(td)[0]) < 1e-6
+
+
 @pytest.fixture(scope="module")
 def button_press_episode():
     """A noiseless scripted-expert episode of button-press (raw gymnasium loop, fast)."""

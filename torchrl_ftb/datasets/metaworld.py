@@ -62,7 +62,8 @@ __all__ = [
 ]
 
 GROUPS = ("expert", "within", "random", "cross")
-GENERATOR_VERSION = 1
+GENERATOR_VERSION = 2  # 2: scripted policies read a copy of the observation (v1 recorded door
+#                        policies' in-place shifts of the object position in cross-env episodes)
 SUCCESS_STREAK = 25  # stop after this many consecutive success steps
 ACTION_CLIP = 1.0 - 1e-5
 

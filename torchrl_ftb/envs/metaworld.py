@@ -87,14 +87,25 @@ def check_metaworld_task(task: str) -> str:
 def scripted_policy(task: str) -> Callable[[np.ndarray], np.ndarray]:
     """The scripted expert of a Meta-World v3 task: ``policy(obs) -> action`` (numpy, 4-d).
 
+    The policy reads a *copy* of ``obs``: some of Meta-World's scripted policies shift parsed
+    positions in place (``door-open-v3``: ``pos_door[0] -= 0.05``; ``door-close-v3``:
+    ``pos_door += ...``), which would silently rewrite the caller's observation — in a
+    dataset, the recorded object position of every step.
+
     Example:
-        >>> pi = scripted_policy("button-press-v3")
-        >>> pi(np.zeros(39)).shape
-        (4,)
+        >>> pi = scripted_policy("door-close-v3")
+        >>> obs = np.zeros(39)
+        >>> pi(obs).shape, bool((obs == 0).all())
+        ((4,), True)
     """
     from metaworld.policies import ENV_POLICY_MAP
 
-    return ENV_POLICY_MAP[check_metaworld_task(task)]().get_action
+    get_action = ENV_POLICY_MAP[check_metaworld_task(task)]().get_action
+
+    def policy(obs: np.ndarray) -> np.ndarray:
+        return get_action(np.array(obs, copy=True))
+
+    return policy
 
 
 def _find_wrapper(env, name: str):
