@@ -142,6 +142,8 @@ def part_b(args, record: dict, write) -> None:
 
 
 def main() -> None:
+    from torchrl_ftb.preference import REWARD_ACTIVATIONS
+
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--part", default="ba", help="a (Meta-World), b (hopper PT labels), or both ('ab'/'ba')")
     parser.add_argument("--tasks", nargs="+", default=list(TASKS))
@@ -152,7 +154,7 @@ def main() -> None:
     parser.add_argument("--num-cells", type=int, default=256)
     parser.add_argument("--num-layers", type=int, default=3)
     parser.add_argument("--members", type=int, default=1, help="score-model ensemble size (score = member mean)")
-    parser.add_argument("--reward-activation", default="identity", choices=["identity", "sigmoid"],
+    parser.add_argument("--reward-activation", default="identity", choices=sorted(REWARD_ACTIVATIONS),
                         help="r_psi output squashing (ScoreModel(reward_activation=...))")
     parser.add_argument("--episodes-per-group", type=int, default=25)
     parser.add_argument("--noise", type=float, default=1.0)

@@ -113,10 +113,12 @@ class _StepReward(nn.Module):
             batch_size=observation.shape[:-1],
         )
         if self.num_members == 1:
-            return self.squash(self.net(td).get("reward").unsqueeze(0))
-        if observation.device.type == "cpu":
-            return self.squash(self.members_sequential(td))
-        return self.squash(self.net(td).get("reward"))
+            raw = self.net(td).get("reward").unsqueeze(0)
+        elif observation.device.type == "cpu":
+            raw = self.members_sequential(td)
+        else:
+            raw = self.net(td).get("reward")
+        return self.squash(raw)
 
     def members_sequential(self, td: TensorDictBase) -> torch.Tensor:
         """The ensemble's ``[C, ..., 1]`` rewards one member after another (same parameters and
