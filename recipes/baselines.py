@@ -122,8 +122,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         top_fraction=float(cfg.bc10.top_fraction), teacher=teacher,
         reward_normalization=str(cfg.reward_normalization),
         reward_model={k: cfg.score_model.get(k) for k in ("num_cells", "num_layers", "gamma", "reward_activation",
-                                                                   "normalize_observations")
-                      if cfg.score_model.get(k) is not None},
+                                                           "normalize_observations")},
         reward_training={k: cfg.score_model[k] for k in ("steps", "batch_size", "lr", "eval_fraction")},
         oprl_members=int(cfg.oprl.members), logger=logger, progress=bool(cfg.progress), device=device,
     )
