@@ -4,9 +4,14 @@
     python recipes/baselines.py method=iql_rpsi labels.teacher=success
     python recipes/baselines.py method=bc10 env.name=toy preset=cpu
     python recipes/baselines.py method=td3bc env.name=hopper +dataset.options.kind=medium-replay
+    python recipes/baselines.py method=iql augmentation.kind=ftb env.name=hopper \
+        +dataset.options.kind=medium-replay            # FTB as data augmentation (paper §4.4)
 
 Stages: dataset (the generated, cached dataset FTB uses) → scripted labels (same seed →
-same pairs) → the method (``torchrl_ftb.baselines.run_baseline``) → evaluation with
+same pairs) → optionally a supplement of generated trajectories (``augmentation.kind``: ``ftb``
+or ``synthetic``, ``torchrl_ftb.augmentation.build_supplement``, cached and resumable under
+``augmentation.cache_dir``) merged into the data → the method
+(``torchrl_ftb.baselines.run_baseline``) → evaluation with
 ``torchrl_ftb.policy.evaluate_policy`` (FTB's protocol). The run directory
 (``run_dir``, as in recipes/ftb_offline.py) receives ``config.yaml`` (resolved), ``actor.pt`` (state dict,
 ``torch.load(weights_only=True)``), ``metrics.json``, ``report.md`` and the logger's files.
@@ -25,15 +30,18 @@ import hydra
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from torchrl_ftb.augmentation import AUGMENTATIONS, build_supplement, merge_datasets
 from torchrl_ftb.baselines import METHODS, LABEL_METHODS, run_baseline
 from torchrl_ftb.data import atomic_torch_save, atomic_write_text
 from torchrl_ftb.data.labels import make_scripted_labels, make_teacher
 from torchrl_ftb.datasets import dataset_kwargs, make_dataset
-from torchrl_ftb.envs import check_env_matches, env_kind, make_env, normalized_score_fn
+from torchrl_ftb.envs import check_env_matches, env_kind, make_env, normalized_score_fn, true_reward_fn
 from torchrl_ftb.policy import evaluate_policy
 from torchrl_ftb.provenance import git_commit, machine_info, make_logger
 
 PRESETS = ("cpu", "paper")
+#: methods that train on the dataset's reward and so can take a generated supplement
+AUGMENTABLE = ("bc", "bc10", "td3bc", "iql")
 
 
 # ====================================================================
@@ -59,7 +67,33 @@ def check_config(cfg: DictConfig) -> None:
         raise ValueError(f"method={cfg.method!r}: unknown; choose from {sorted(METHODS)}")
     if cfg.preset not in PRESETS:
         raise ValueError(f"preset={cfg.preset!r}: unknown; choose from {list(PRESETS)}")
+    kind = cfg.augmentation.kind
+    if kind not in AUGMENTATIONS:
+        raise ValueError(f"augmentation.kind={kind!r}: unknown; choose from {list(AUGMENTATIONS)}")
+    if kind != "none" and cfg.method not in AUGMENTABLE:
+        raise ValueError(f"augmentation.kind={kind!r} with method={cfg.method!r}: a supplement brings generated "
+                         f"rewards, so only {list(AUGMENTABLE)} can use it")
     env_kind(cfg.env.name)
+
+
+def make_supplement(cfg: DictConfig, trajs, *, device, logger) -> tuple[Any, dict | None]:
+    """The dataset merged with the augmentation's generated trajectories (``kind=none``: as is)."""
+    aug = cfg.augmentation
+    if aug.kind == "none":
+        return trajs, None
+    supplement, info = build_supplement(
+        str(aug.kind), trajs, cache_dir=Path(str(aug.cache_dir)).expanduser().resolve(),
+        diffuser=OmegaConf.to_container(aug.diffuser, resolve=True),
+        flow=OmegaConf.to_container(aug.flow, resolve=True),
+        synthetic={} if aug.synthetic.num_samples is None else {"num_samples": int(aug.synthetic.num_samples)},
+        num_blocks=int(aug.num_blocks), seed=int(cfg.seed),
+        true_reward_fn=true_reward_fn(cfg.env.name) if aug.true_reward else None,
+        device=device, logger=logger, progress=bool(cfg.progress),
+    )
+    merged = merge_datasets(trajs, supplement) if supplement.batch_size[0] else trajs
+    print(f"[baselines] augmentation {aug.kind}: +{info['num_trajectories']} trajectories "
+          f"(+{info['num_transitions']} transitions to {info['dataset_transitions']}) from {info['path']}")
+    return merged, info
 
 
 def _report(metrics: dict[str, Any]) -> str:
@@ -77,6 +111,16 @@ def _report(metrics: dict[str, Any]) -> str:
         f"| evaluation episodes | {ev['num_episodes']} |",
         f"| wall time | {metrics['wall_time_s']:.0f} s |",
     ]
+    aug = metrics.get("augmentation") or {}
+    if aug.get("kind", "none") != "none":
+        lines += ["", f"Data augmented with `{aug['kind']}` ({AUGMENTATIONS[aug['kind']]}): "
+                  f"+{aug['num_trajectories']} trajectories, +{aug['num_transitions']} transitions "
+                  f"to the dataset's {aug['dataset_transitions']}.", "",
+                  "| return | mean | max |", "|---|---|---|",
+                  f"| dataset | {aug['dataset_return_mean']:.2f} | {aug['dataset_return_max']:.2f} |"]
+        for name, key in (("supplement, generated reward", "generated_return"), ("supplement, true reward", "true_return")):
+            if aug.get(f"{key}_mean") is not None:
+                lines.append(f"| {name} | {aug[f'{key}_mean']:.2f} | {aug[f'{key}_max']:.2f} |")
     return "\n".join(lines) + "\n"
 
 
@@ -92,8 +136,14 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     run_dir.mkdir(parents=True, exist_ok=True)
     metrics_file = run_dir / "metrics.json"
     if cfg.resume and metrics_file.exists():
+        done = json.loads(metrics_file.read_text())
+        done_kind = (done.get("augmentation") or {}).get("kind", "none")
+        if (done.get("method"), done_kind) != (cfg.method, cfg.augmentation.kind):
+            raise ValueError(f"{metrics_file}: this run directory holds a finished run of method={done.get('method')!r}"
+                             f" augmentation.kind={done_kind!r}, not method={cfg.method!r} augmentation.kind="
+                             f"{cfg.augmentation.kind!r}; pass another run_dir")
         print(f"[baselines] {metrics_file} exists (resume=true): nothing to do")
-        return json.loads(metrics_file.read_text())
+        return done
     start = time.perf_counter()
     if int(cfg.num_threads) > 0:
         torch.set_num_threads(int(cfg.num_threads))
@@ -113,8 +163,9 @@ def run(cfg: DictConfig) -> dict[str, Any]:
                                  max_episode_steps=None if kind == "locomotion" else limit)  # locomotion: 1000
     check_env_matches(eval_env, trajs, name=name)
     labels, teacher = make_labels(cfg, trajs)
+    data, augmentation = make_supplement(cfg, trajs, device=device, logger=logger)
     result = run_baseline(
-        cfg.method, trajs, labels=labels, seed=int(cfg.seed),
+        cfg.method, data, labels=labels, seed=int(cfg.seed),
         network=OmegaConf.to_container(cfg.network, resolve=True),
         bc=OmegaConf.to_container(cfg.bc, resolve=True),
         iql=OmegaConf.to_container(cfg.iql, resolve=True),
@@ -147,6 +198,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         "uses_labels": cfg.method in LABEL_METHODS,
         "labels": {"num_pairs": int(labels.batch_size[0]), "teacher": teacher.name, "seed": int(cfg.labels.seed)},
         "dataset": {k: v for k, v in (meta or {}).items() if isinstance(v, (int, float, str, bool))},
+        "augmentation": {"kind": "none"} if augmentation is None else _jsonable(augmentation),
         "train": _jsonable(result.info),
         "wall_time_s": time.perf_counter() - start,
         "command": " ".join(sys.argv), "git_commit": git_commit(), "machine": machine_info(),

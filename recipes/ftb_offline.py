@@ -42,7 +42,7 @@ from torchrl_ftb.analysis import novelty, plot_flow_curves, plot_histograms
 from torchrl_ftb.data import atomic_torch_save, atomic_write_text, read_checkpoint, trajectories_to_flat
 from torchrl_ftb.data.labels import load_labels, make_scripted_labels, make_teacher, save_labels, true_return
 from torchrl_ftb.datasets import dataset_kwargs, make_dataset
-from torchrl_ftb.diffusion import DiffusionSampler, get_preset, load_diffuser, make_diffuser, train_diffuser
+from torchrl_ftb.diffusion import DiffusionSampler, load_diffuser, make_diffuser, run_settings, train_diffuser
 from torchrl_ftb.diffusion.train import CHECKPOINT_NAME
 from torchrl_ftb.envs import (
     check_env_matches,
@@ -249,18 +249,8 @@ def stage_blocks(cfg, run: RunDir, trajs, model) -> tuple[torch.Tensor, torch.Te
 def diffuser_settings(cfg: DictConfig) -> dict:
     """Training/sampling numbers: the config's, or the diffusion preset's where the config says null."""
     d = cfg.diffuser
-    preset = get_preset(str(d.preset))
-    train, sample = preset["train"], preset["sample"]
-    clip = train.get("grad_clip") if d.grad_clip == "preset" else d.grad_clip
-    return {
-        "steps": int(train["steps"] if d.steps is None else d.steps),
-        "batch_size": int(train["batch_size"] if d.batch_size is None else d.batch_size),
-        "lr": float(train["lr"] if d.lr is None else d.lr),
-        "grad_clip": None if clip is None else float(clip),
-        "sampler": str(sample["sampler"] if d.sampler is None else d.sampler),
-        "sample_steps": int(sample["steps"] if d.sample_steps is None else d.sample_steps),
-        "guidance": float(sample["guidance"] if d.guidance is None else d.guidance),
-    }
+    return run_settings(str(d.preset), steps=d.steps, batch_size=d.batch_size, lr=d.lr, grad_clip=d.grad_clip,
+                        sampler=d.sampler, sample_steps=d.sample_steps, guidance=d.guidance)
 
 
 def make_sampler(cfg, diffuser) -> DiffusionSampler:

@@ -59,7 +59,7 @@ from torchrl_ftb.diffusion.model import TrajectoryDiffuser
 from torchrl_ftb.diffusion.normalizer import TrajectoryNormalizer
 from torchrl_ftb.diffusion.process import DiffusionProcess
 
-__all__ = ["PRESETS", "get_preset", "make_diffuser"]
+__all__ = ["PRESETS", "get_preset", "make_diffuser", "run_settings"]
 
 _MODEL_DEFAULTS = dict(
     hidden_dim=32,
@@ -103,6 +103,40 @@ def get_preset(name: str) -> dict:
     if name not in PRESETS:
         raise ValueError(f"unknown diffuser preset {name!r}; choose one of {sorted(PRESETS)}")
     return copy.deepcopy(PRESETS[name])
+
+
+def run_settings(
+    preset: str,
+    *,
+    steps: int | None = None,
+    batch_size: int | None = None,
+    lr: float | None = None,
+    grad_clip: float | str | None = "preset",
+    sampler: str | None = None,
+    sample_steps: int | None = None,
+    guidance: float | None = None,
+) -> dict:
+    """Training and sampling numbers of preset ``name``, with the given ones in their place.
+
+    ``None`` keeps the preset's number, except ``grad_clip``: ``"preset"`` keeps the preset's,
+    ``None`` means no clipping (the authors').
+
+    Example:
+        >>> run_settings("cpu", steps=10)["steps"], run_settings("cpu")["sampler"]
+        (10, 'ddpm')
+    """
+    p = get_preset(preset)
+    train, sample = p["train"], p["sample"]
+    clip = train.get("grad_clip") if grad_clip == "preset" else grad_clip
+    return {
+        "steps": int(train["steps"] if steps is None else steps),
+        "batch_size": int(train["batch_size"] if batch_size is None else batch_size),
+        "lr": float(train["lr"] if lr is None else lr),
+        "grad_clip": None if clip is None else float(clip),
+        "sampler": str(sample["sampler"] if sampler is None else sampler),
+        "sample_steps": int(sample["steps"] if sample_steps is None else sample_steps),
+        "guidance": float(sample["guidance"] if guidance is None else guidance),
+    }
 
 
 def make_diffuser(

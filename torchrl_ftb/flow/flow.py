@@ -68,6 +68,7 @@ __all__ = [
 ]
 
 TRAJ_KEYS = ("observation", "action", "mask")
+REWARD_KEY = ("next", "reward")
 
 
 def normalized_scores(
@@ -134,11 +135,13 @@ def trajectory_validity(
     finite = torch.where(m3, torch.isfinite(obs), True).all(-1).all(-1) & torch.where(
         m3, torch.isfinite(act), True
     ).all(-1).all(-1)
+    if REWARD_KEY in samples.keys(True):
+        finite &= torch.where(m3, torch.isfinite(samples.get(REWARD_KEY)), True).all(-1).all(-1)
     if normalizer is not None:
         x = torch.cat([obs, act], -1)
         dim = getattr(normalizer, "dim", x.shape[-1])
-        if dim == x.shape[-1] + 1 and ("next", "reward") in samples.keys(True):
-            x = torch.cat([x, samples.get(("next", "reward"))], -1)
+        if dim == x.shape[-1] + 1 and REWARD_KEY in samples.keys(True):
+            x = torch.cat([x, samples.get(REWARD_KEY)], -1)
         if dim != x.shape[-1]:
             raise ValueError(
                 f"trajectory_validity: normaliser dimension {dim} does not match the sample's "
@@ -240,6 +243,9 @@ class FlowToBetter(nn.Module):
         ensemble_rule: ``"mean"`` (accept on the ensemble-mean score) or ``"all"`` (every
             member's normalised score must improve; needs a :class:`ScoreModel` ensemble). The
             final top-k is ranked by the mean score either way.
+        keep_reward: carry ``("next", "reward")`` through the flow: the data must have it, the
+            sampler must generate it (a diffuser with ``reward_channel=True``), and the result's
+            trajectories hold it (FTB as data augmentation, :mod:`torchrl_ftb.augmentation`).
         logger: torchrl logger (``log_scalar``), optional; ``progress``: tqdm bar.
     """
 
@@ -264,6 +270,7 @@ class FlowToBetter(nn.Module):
         batch_size: int = 256,
         seed: int = 0,
         ensemble_rule: str = "mean",
+        keep_reward: bool = False,
         logger: Any | None = None,
         progress: bool = True,
     ) -> None:
@@ -302,6 +309,8 @@ class FlowToBetter(nn.Module):
         self.batch_size = int(batch_size)
         self.seed = int(seed)
         self.ensemble_rule = ensemble_rule
+        self.keep_reward = bool(keep_reward)
+        self.keys = (*TRAJ_KEYS, REWARD_KEY) if self.keep_reward else TRAJ_KEYS
         self.logger = logger
         self.progress = progress
 
@@ -344,7 +353,10 @@ class FlowToBetter(nn.Module):
             keys = [k for k in TRAJ_KEYS if k in sample.keys()]
             if len(keys) != len(TRAJ_KEYS):
                 raise ValueError(f"FlowToBetter: sampler output 'sample' lacks {set(TRAJ_KEYS) - set(keys)}")
-            extra = [("next", "reward")] if ("next", "reward") in sample.keys(True) else []
+            if self.keep_reward and REWARD_KEY not in sample.keys(True):
+                raise ValueError("FlowToBetter(keep_reward=True): the sampler's 'sample' has no ('next', 'reward'); "
+                                 "use a diffuser with reward_channel=True")
+            extra = [REWARD_KEY] if REWARD_KEY in sample.keys(True) else []
             chunks.append(sample.select(*TRAJ_KEYS, *extra).to(conditions.device))
         out = torch.cat(chunks, 0)
         out.set("mask", out.get("mask").bool())
@@ -395,11 +407,11 @@ class FlowToBetter(nn.Module):
         Returns:
             A :class:`FlowResult`.
         """
-        validate_trajectories(data, name="FlowToBetter: data")
+        validate_trajectories(data, name="FlowToBetter: data", require=[REWARD_KEY] if self.keep_reward else ())
         n = data.batch_size[0]
         if self.top_k > n:
             raise ValueError(f"FlowToBetter: top_k={self.top_k} exceeds the {n} dataset trajectories")
-        data = data.select(*TRAJ_KEYS)
+        data = data.select(*self.keys)
         if scores is not None:
             scores = torch.as_tensor(scores).reshape(-1)
             if scores.shape != (n,):
@@ -445,9 +457,11 @@ class FlowToBetter(nn.Module):
                 accept = valid & better & torch.isfinite(new_scores)
                 true_gain = None
                 if bool(accept.any()):
-                    accepted = samples[accept].select(*TRAJ_KEYS).clone()
+                    accepted = samples[accept].select(*self.keys).clone()
                     act = accepted.get("action").clamp(-self.action_limit, self.action_limit)
                     accepted.set("action", act * accepted.get("mask")[..., None])
+                    if self.keep_reward:  # padding carries no reward
+                        accepted.set(REWARD_KEY, accepted.get(REWARD_KEY) * accepted.get("mask")[..., None])
                     current[accept] = accepted
                     cur_scores[accept] = new_scores[accept]
                     cur_members[:, accept] = new_members[:, accept]

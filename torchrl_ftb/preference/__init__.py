@@ -18,6 +18,7 @@ from torchrl_ftb.preference.pairs import (
     PairToConditionTarget,
     make_block_pair_buffer,
     make_labeled_pair_buffer,
+    make_trajectory_buffer,
 )
 from torchrl_ftb.preference.score import (
     REWARD_ACTIVATIONS,
@@ -42,6 +43,7 @@ __all__ = [
     "make_block_pair_buffer",
     "make_blocks",
     "make_labeled_pair_buffer",
+    "make_trajectory_buffer",
     "load_score_model",
     "pairwise_accuracy",
     "plot_preference_scatter",

@@ -4,6 +4,8 @@
   ``K - 1`` adjacent block pairs, then ``tau0 ~ U(B_k)`` and ``tau1 ~ U(B_{k+1})``.
 * Naive variant (Eq. 3, the ablation): only the labelled pairs, worse = condition, better =
   target, ties skipped (:func:`make_labeled_pair_buffer`).
+* Unconditional (the SYNTHETIC baseline): uniformly drawn trajectories as ``"target"``, no
+  condition (:func:`make_trajectory_buffer`).
 
 Both buffers hold trajectories in a :class:`~torchrl.data.LazyTensorStorage` and return the
 same pair batch: a TensorDict ``[B]`` with sub-TensorDicts ``"condition"`` (``tau0``) and
@@ -43,6 +45,7 @@ __all__ = [
     "PairToConditionTarget",
     "make_block_pair_buffer",
     "make_labeled_pair_buffer",
+    "make_trajectory_buffer",
 ]
 
 
@@ -111,6 +114,19 @@ class BlockPairSampler(Sampler):
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(num_blocks={self.num_blocks}, sizes={self._counts.tolist()})"
+
+
+class _AsTarget(Transform):
+    """Replay-buffer transform: fetched trajectories ``[B, H]`` -> ``[B]`` with ``"target"`` only."""
+
+    def __init__(self) -> None:
+        super().__init__(in_keys=[], out_keys=[])
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        return TensorDict({"target": tensordict}, batch_size=tensordict.batch_size[:1], device=tensordict.device)
+
+    def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
+        return tensordict
 
 
 class PairToConditionTarget(Transform):
@@ -237,3 +253,41 @@ def make_labeled_pair_buffer(
 
 def _expand(flag: torch.Tensor, like: TensorDictBase) -> torch.Tensor:
     return flag.reshape(-1, *([1] * (like.batch_dims - 1)))
+
+
+def make_trajectory_buffer(
+    trajs: TensorDictBase,
+    *,
+    batch_size: int,
+    seed: int | None = None,
+    keys: Sequence[NestedKey] | None = ("observation", "action", "mask"),
+) -> TensorDictReplayBuffer:
+    """Replay buffer of uniformly drawn trajectories as ``"target"`` (no condition).
+
+    What an unconditional diffuser (``make_diffuser(..., unconditional=True)``, the SYNTHETIC
+    baseline) trains on; the batch is a TensorDict ``[B]`` with the sub-TensorDict
+    ``"target"`` ``[B, H]`` (and the buffer's ``"index"``).
+
+    Example:
+        >>> from torchrl_ftb.testing import make_toy_dataset
+        >>> rb = make_trajectory_buffer(make_toy_dataset(num_trajectories=6, horizon=4), batch_size=3, seed=0)
+        >>> rb.sample()["target"].batch_size
+        torch.Size([3, 4])
+    """
+    validate_trajectories(trajs, name="make_trajectory_buffer: trajs")
+    if batch_size < 1:
+        raise ValueError(f"make_trajectory_buffer: batch_size must be >= 1, got {batch_size}")
+    if keys is not None:
+        missing = [k for k in keys if k not in trajs.keys(True)]
+        if missing:
+            raise ValueError(f"make_trajectory_buffer: the trajectories have no {missing}")
+        trajs = trajs.select(*keys)
+    rb = TensorDictReplayBuffer(
+        storage=LazyTensorStorage(trajs.batch_size[0], ndim=1, device=trajs.device or "cpu"),
+        sampler=RandomSampler(),
+        batch_size=batch_size,
+        generator=None if seed is None else torch.Generator().manual_seed(int(seed)),
+    )
+    rb.extend(trajs)
+    rb.append_transform(_AsTarget())
+    return rb
