@@ -1,0 +1,99 @@
+"""Table-2 harness: FTB as data augmentation for offline RL (paper §4.4) vs SYNTHETIC vs none.
+
+Cells are ``recipes/baselines.py method=<td3bc|iql> augmentation.kind=<none|synthetic|ftb>``
+runs through the Table-1 harness (``bench/table1.run_cell``: resumable, a cell whose JSON
+exists is skipped, JSON with command / config / commit / machine / wall time / score). The two
+methods of one seed share one supplement per kind (``augmentation.cache_dir``), as the paper
+augments a dataset once and trains both algorithms on it.
+
+    python bench/table2.py --tasks hopper-medium-replay --seeds 0,1,2 \\
+        --extra eval.max_steps=1000                     # run the cells
+    python bench/table2.py --summary                    # print the Markdown table
+
+Cells: ``bench/results/table2/<kind>/<method>__<task>__return__seed<k>.json``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+from pathlib import Path
+from typing import Iterable
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from table1 import ROOT, _csv, cell_path, load_cells, run_cell  # noqa: E402
+
+RESULTS_DIR = ROOT / "bench" / "results" / "table2"
+KINDS = ("none", "synthetic", "ftb")
+METHODS = ("td3bc", "iql")
+#: Paper, Table 2 (D4RL, 5 seeds): (Original, SYNTHETIC, FTB) per method
+PAPER_TABLE2 = {
+    "hopper-medium-replay-v2": {"td3bc": (60.9, 60.1, 83.0), "iql": (94.7, 86.5, 97.4)},
+    "walker2d-medium-replay-v2": {"td3bc": (81.8, 84.0, 90.2), "iql": (73.9, 90.5, 86.6)},
+}
+
+
+def summary(results_dir: Path) -> str:
+    """Markdown: per task and method, mean ± std (n) of each kind, and the supplement's returns."""
+    rows = ["| task | method | none | SYNTHETIC | FTB | supplement true return (generated): SYNTHETIC / FTB |",
+            "|---|---|---|---|---|---|"]
+    cells = {kind: load_cells(results_dir / kind) for kind in KINDS}
+    tasks = sorted({c["env"] for kind in KINDS for c in cells[kind]})
+    for task in tasks:
+        for method in METHODS:
+            out, sup = [], []
+            for kind in KINDS:
+                scores = [c["score"] for c in cells[kind] if c["env"] == task and c["method"] == method]
+                if not scores:
+                    out.append("—")
+                else:
+                    sd = statistics.pstdev(scores) if len(scores) > 1 else 0.0
+                    out.append(f"{statistics.mean(scores):.1f} ± {sd:.1f} ({len(scores)})")
+                if kind != "none":
+                    aug = [c["metrics"].get("augmentation", {}) for c in cells[kind]
+                           if c["env"] == task and c["method"] == method]
+                    vals = [(a.get("true_return_mean"), a.get("generated_return_mean")) for a in aug
+                            if a.get("true_return_mean") is not None]
+                    sup.append(" / ".join(f"{t:.0f} ({g:.0f})" for t, g in vals) or "—")
+            rows.append(f"| {task} | {method} | " + " | ".join(out) + " | " + " ; ".join(sup) + " |")
+    return "\n".join(rows)
+
+
+def main(argv: Iterable[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--tasks", type=_csv, default=["hopper-medium-replay"])
+    parser.add_argument("--seeds", type=_csv, default=["0"])
+    parser.add_argument("--methods", type=_csv, default=list(METHODS))
+    parser.add_argument("--kinds", type=_csv, default=list(KINDS))
+    parser.add_argument("--preset", default="cpu")
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--extra", nargs="*", default=[], help="extra hydra overrides for every cell")
+    parser.add_argument("--results-dir", type=Path, default=RESULTS_DIR)
+    parser.add_argument("--runs-dir", type=Path, default=ROOT / "outputs" / "table2")
+    parser.add_argument("--summary", action="store_true", help="print the Markdown table of the finished cells")
+    args = parser.parse_args(list(argv) if argv is not None else None)
+    if args.summary:
+        print(summary(args.results_dir))
+        return 0
+    failures = 0
+    for task in args.tasks:
+        for seed in map(int, args.seeds):
+            for kind in args.kinds:
+                if kind not in KINDS:
+                    parser.error(f"unknown kind {kind!r}; choose from {KINDS}")
+                cache = args.runs_dir / "supplements" / task / f"seed{seed}"
+                extra = [f"augmentation.kind={kind}", f"augmentation.cache_dir={cache}", *args.extra]
+                for method in args.methods:
+                    record = run_cell(method, task, seed, teacher="return", preset=args.preset, extra=extra,
+                                      threads=args.threads, runs_dir=args.runs_dir / kind,
+                                      results_dir=args.results_dir / kind)
+                    failures += record is None
+                    if record is not None:
+                        print(json.dumps({"cell": cell_path(args.results_dir / kind, method, task, "return", seed).name,
+                                          "score": record["score"]}), flush=True)
+    return 1 if failures else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
