@@ -1,14 +1,11 @@
 """FTB as data augmentation (torchrl_ftb.augmentation, recipes/baselines.py augmentation.kind)."""
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import pytest
 import torch
-from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 
 from torchrl_ftb.augmentation import (
@@ -24,7 +21,7 @@ from torchrl_ftb.baselines import make_offline_buffer
 from torchrl_ftb.data.labels import true_return
 from torchrl_ftb.diffusion import DiffusionSampler, make_diffuser
 from torchrl_ftb.flow import FlowToBetter
-from torchrl_ftb.testing import make_toy_dataset, toy_reward
+from torchrl_ftb.testing import load_script, make_toy_dataset, toy_reward
 
 ROOT = Path(__file__).resolve().parents[1]
 GEN_KEYS = ("observation", "action", "mask", ("next", "reward"))
@@ -149,18 +146,10 @@ def test_build_supplement_is_cached_and_checked(supplements):
         build_supplement("none", data, **common)
 
 
-def _load(path: Path, name: str):
-    spec = importlib.util.spec_from_file_location(name, path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module
-    spec.loader.exec_module(module)
-    return module
-
-
 def test_baselines_recipe_with_augmentation(tmp_path):
     from hydra import compose, initialize_config_dir
 
-    recipe = _load(ROOT / "recipes" / "baselines.py", "recipe_baselines_aug")
+    recipe = load_script(ROOT / "recipes" / "baselines.py", "recipe_baselines_aug")
     overrides = ["env.name=toy", "method=iql", "dataset.num_trajectories=24", "dataset.horizon=8", "iql.steps=5",
                  "network.hidden=[8]", "eval.num_episodes=2", "progress=false", "logger.backend=csv",
                  "augmentation.diffuser.preset=tiny", "augmentation.diffuser.steps=5",

@@ -1,9 +1,7 @@
 """Tests of torchrl_ftb.baselines, recipes/baselines.py and bench/table1.py (fast, CPU)."""
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import pytest
@@ -25,7 +23,7 @@ from torchrl_ftb.baselines import (
 from torchrl_ftb.data import pad_trajectories, trajectories_to_flat
 from torchrl_ftb.data.labels import ReturnTeacher, make_scripted_labels
 from torchrl_ftb.policy import evaluate_policy
-from torchrl_ftb.testing import MetaWorldMockEnv, ToyLineEnv, make_toy_dataset
+from torchrl_ftb.testing import MetaWorldMockEnv, ToyLineEnv, load_script, make_toy_dataset
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = dict(
@@ -40,14 +38,6 @@ TINY = dict(
 )
 
 pytestmark = pytest.mark.usefixtures("one_thread")
-
-
-def _load(path: Path, name: str):
-    spec = importlib.util.spec_from_file_location(name, path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module
-    spec.loader.exec_module(module)
-    return module
 
 
 @pytest.fixture(scope="module")
@@ -174,7 +164,7 @@ def test_iql_model_is_deterministic_in_eval_mode():
 def test_recipe_runs_resumes_and_checkpoint_loads(tmp_path):
     from hydra import compose, initialize_config_dir
 
-    recipe = _load(ROOT / "recipes" / "baselines.py", "recipe_baselines")
+    recipe = load_script(ROOT / "recipes" / "baselines.py", "recipe_baselines")
     overrides = ["env.name=toy", "method=bc10_score", "dataset.num_trajectories=24", "dataset.horizon=8",
                  "labels.num_pairs=6", "bc.steps=5", "score_model.steps=3", "score_model.num_cells=8",
                  "bc.hidden=[8]", "eval.num_episodes=2", "progress=false", "logger.backend=csv"]
@@ -195,7 +185,7 @@ def test_recipe_runs_resumes_and_checkpoint_loads(tmp_path):
 
 
 def test_table1_markdown_between_markers(tmp_path):
-    table1 = _load(ROOT / "bench" / "table1.py", "bench_table1")
+    table1 = load_script(ROOT / "bench" / "table1.py", "bench_table1")
     cells = tmp_path / "cells"
     for seed, score in ((0, 0.5), (1, 0.7)):
         table1.write_cell_json(cells / f"iql__button-press-v3__seed{seed}.json",

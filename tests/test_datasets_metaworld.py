@@ -1,5 +1,4 @@
 """Tests of the Meta-World dataset generator (IPL recipe), its cache, stats, registry and CLI."""
-import importlib.util
 from pathlib import Path
 
 import pytest
@@ -15,7 +14,7 @@ from torchrl_ftb.datasets import (
     make_metaworld_dataset,
 )
 from torchrl_ftb.datasets.metaworld import ACTION_CLIP, SUCCESS_STREAK, default_cache_dir
-from torchrl_ftb.testing import make_toy_dataset
+from torchrl_ftb.testing import load_script, make_toy_dataset
 
 
 def test_registry_finds_metaworld_and_rejects_unknown():
@@ -105,9 +104,7 @@ def test_cache_reload_is_identical_and_config_changes_the_key(tiny_dataset):
 def test_make_dataset_cli_prints_group_stats(tiny_dataset, capsys):
     _, _, cache = tiny_dataset
     path = Path(__file__).parents[1] / "recipes" / "make_dataset.py"
-    spec = importlib.util.spec_from_file_location("make_dataset_recipe", path)
-    cli = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(cli)
+    cli = load_script(path, "make_dataset_recipe")
     stats = cli.main(["--env", "button-press-v3", "--episodes-per-group", "1", "--noise", "0", "--seed", "0",
                       "--max-steps", "150", "--out", str(cache), "--no-progress"])
     out = capsys.readouterr().out

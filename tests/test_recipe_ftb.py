@@ -1,7 +1,6 @@
 """Tests of recipes/ftb_offline.py: tiny toy run end to end, kill-and-resume, clear errors."""
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
 import signal
@@ -13,6 +12,8 @@ from pathlib import Path
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
+
+from torchrl_ftb.testing import load_script
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG_DIR = ROOT / "recipes" / "config"
@@ -29,10 +30,7 @@ pytestmark = [pytest.mark.filterwarnings("ignore::UserWarning"), pytest.mark.use
 
 
 def _recipe():
-    spec = importlib.util.spec_from_file_location("ftb_offline_recipe", ROOT / "recipes" / "ftb_offline.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script(ROOT / "recipes" / "ftb_offline.py", "ftb_offline_recipe")
 
 
 def _cfg(run_dir: Path, *extra: str):

@@ -166,7 +166,9 @@ class PairToConditionTarget(Transform):
 
 
 def _pair_buffer(data: TensorDictBase, sampler: Sampler, *, batch_size: int, seed: int | None,
-                 keys: Sequence[NestedKey] | None) -> TensorDictReplayBuffer:
+                 keys: Sequence[NestedKey] | None, transform: Transform | None = None) -> TensorDictReplayBuffer:
+    """Storage of ``data`` (``keys`` only), ``sampler``, seeded generator, then ``transform``
+    (default :class:`PairToConditionTarget`)."""
     if batch_size < 1:
         raise ValueError(f"pair buffer: batch_size must be >= 1, got {batch_size}")
     if keys is not None:  # store only what the pairs carry (no copy of unused dataset keys)
@@ -181,7 +183,7 @@ def _pair_buffer(data: TensorDictBase, sampler: Sampler, *, batch_size: int, see
         generator=None if seed is None else torch.Generator().manual_seed(int(seed)),
     )
     rb.extend(data)
-    rb.append_transform(PairToConditionTarget())
+    rb.append_transform(PairToConditionTarget() if transform is None else transform)
     return rb
 
 
@@ -275,19 +277,4 @@ def make_trajectory_buffer(
         torch.Size([3, 4])
     """
     validate_trajectories(trajs, name="make_trajectory_buffer: trajs")
-    if batch_size < 1:
-        raise ValueError(f"make_trajectory_buffer: batch_size must be >= 1, got {batch_size}")
-    if keys is not None:
-        missing = [k for k in keys if k not in trajs.keys(True)]
-        if missing:
-            raise ValueError(f"make_trajectory_buffer: the trajectories have no {missing}")
-        trajs = trajs.select(*keys)
-    rb = TensorDictReplayBuffer(
-        storage=LazyTensorStorage(trajs.batch_size[0], ndim=1, device=trajs.device or "cpu"),
-        sampler=RandomSampler(),
-        batch_size=batch_size,
-        generator=None if seed is None else torch.Generator().manual_seed(int(seed)),
-    )
-    rb.extend(trajs)
-    rb.append_transform(_AsTarget())
-    return rb
+    return _pair_buffer(trajs, RandomSampler(), batch_size=batch_size, seed=seed, keys=keys, transform=_AsTarget())

@@ -6,5 +6,6 @@ from torchrl_ftb.testing.mocks import (
     toy_optimal_return,
     toy_reward,
 )
+from torchrl_ftb.testing.scripts import load_script
 
-__all__ = ["ToyLineEnv", "MetaWorldMockEnv", "make_toy_dataset", "toy_reward", "toy_optimal_return"]
+__all__ = ["ToyLineEnv", "MetaWorldMockEnv", "make_toy_dataset", "toy_reward", "toy_optimal_return", "load_script"]
