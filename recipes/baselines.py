@@ -35,7 +35,7 @@ from torchrl_ftb.baselines import METHODS, LABEL_METHODS, run_baseline
 from torchrl_ftb.data import atomic_torch_save, atomic_write_text
 from torchrl_ftb.data.labels import make_scripted_labels, make_teacher
 from torchrl_ftb.datasets import dataset_kwargs, make_dataset
-from torchrl_ftb.envs import check_env_matches, env_kind, make_env, normalized_score_fn, true_reward_fn
+from torchrl_ftb.envs import check_env_matches, env_kind, make_env, normalized_score_fn, oracle_step, true_reward_fn
 from torchrl_ftb.policy import evaluate_policy
 from torchrl_ftb.provenance import git_commit, machine_info, make_logger
 
@@ -88,6 +88,7 @@ def make_supplement(cfg: DictConfig, trajs, *, device, logger) -> tuple[Any, dic
         synthetic={} if aug.synthetic.num_samples is None else {"num_samples": int(aug.synthetic.num_samples)},
         num_blocks=int(aug.num_blocks), seed=int(cfg.seed),
         true_reward_fn=true_reward_fn(cfg.env.name) if aug.true_reward else None,
+        oracle_step=functools.partial(oracle_step, cfg.env.name) if env_kind(cfg.env.name) == "locomotion" else None,
         device=device, logger=logger, progress=bool(cfg.progress),
     )
     merged = merge_datasets(trajs, supplement) if supplement.batch_size[0] else trajs
@@ -121,6 +122,9 @@ def _report(metrics: dict[str, Any]) -> str:
         for name, key in (("supplement, generated reward", "generated_return"), ("supplement, true reward", "true_return")):
             if aug.get(f"{key}_mean") is not None:
                 lines.append(f"| {name} | {aug[f'{key}_mean']:.2f} | {aug[f'{key}_max']:.2f} |")
+        if aug.get("dynamics_error_mean") is not None:
+            lines += ["", f"Supplement dynamics error (mean |s' - oracle(s, a)| per dimension): "
+                      f"{aug['dynamics_error_mean']:.4f}."]
     return "\n".join(lines) + "\n"
 
 

@@ -2,12 +2,14 @@
 from __future__ import annotations
 
 import json
+from functools import partial
 from pathlib import Path
 
 import pytest
 import torch
 from tensordict.nn import TensorDictModule
 
+from torchrl_ftb.analysis import toy_oracle_step
 from torchrl_ftb.augmentation import (
     TRANSITION_KEYS,
     as_transitions,
@@ -113,7 +115,7 @@ def supplements(tmp_path_factory):
     data = make_toy_dataset(num_trajectories=256, horizon=8, seed=0, noise=0.0)
     common = dict(cache_dir=cache, diffuser={"preset": "tiny", "steps": 250, "lr": 3e-3, "sample_steps": 50},
                   flow={"top_k": 32, "flow_steps": 3, "threshold": 1.05, "batch_size": 64}, num_blocks=4,
-                  seed=0, true_reward_fn=toy_reward, progress=False)
+                  seed=0, true_reward_fn=toy_reward, oracle_step=partial(toy_oracle_step, horizon=8), progress=False)
     out = {kind: build_supplement(kind, data, **common) for kind in ("ftb", "synthetic")}
     return data, common, out
 
@@ -128,6 +130,7 @@ def test_ftb_supplement_is_better_than_synthetic_in_true_return(supplements):
     # about as good as the top-k it started from (dataset mean: 0.6), far better than SYNTHETIC's
     assert ftb_info["true_return_mean"] > 0.9 * float(top.mean())
     assert ftb_info["true_return_mean"] > syn_info["true_return_mean"] + 3.0
+    assert ftb_info["dynamics_error_mean"] > 0 and syn_info["dynamics_error_mean"] > 0  # reported, not exact
     assert set(ftb.keys(True, True)) == set(TRANSITION_KEYS)
 
 

@@ -71,8 +71,9 @@ def dynamics_error(
 ) -> dict[str, torch.Tensor | float]:
     """Per-step ``||s_{h+1} - oracle(s_h, a_h)||_1 / obs_dim`` on steps with a successor.
 
-    ``s_{h+1}`` is the next *generated* observation (``observation`` shifted by one), so the
-    last valid step of each trajectory has no target and is excluded.
+    ``s_{h+1}`` is ``("next", "observation")`` where the batch has it (every valid step is a
+    transition), else the next *generated* observation (``observation`` shifted by one), so
+    the last valid step of each trajectory has no target and is excluded.
 
     Args:
         trajectories: ``[N, H]`` batch (``observation``, ``action``, ``mask``).
@@ -84,8 +85,11 @@ def dynamics_error(
         "mean": float}``.
     """
     obs, act, mask = trajectories.get("observation"), trajectories.get("action"), trajectories.get("mask").bool()
-    target = torch.cat([obs[:, 1:], obs[:, -1:]], 1)
-    valid = mask & torch.cat([mask[:, 1:], torch.zeros_like(mask[:, :1])], 1)
+    if ("next", "observation") in trajectories.keys(True):
+        target, valid = trajectories.get(("next", "observation")), mask
+    else:
+        target = torch.cat([obs[:, 1:], obs[:, -1:]], 1)
+        valid = mask & torch.cat([mask[:, 1:], torch.zeros_like(mask[:, :1])], 1)
     err = torch.zeros(mask.shape, dtype=torch.float32, device=obs.device)
     if bool(valid.any()):
         pred = torch.as_tensor(oracle_step(obs[valid], act[valid])).to(obs.device).float()

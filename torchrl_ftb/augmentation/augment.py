@@ -255,6 +255,7 @@ def build_supplement(
     num_blocks: int = 10,
     seed: int = 0,
     true_reward_fn: Callable | None = None,
+    oracle_step: Callable | None = None,
     device: torch.device | str = "cpu",
     resume: bool = True,
     logger: Any = None,
@@ -284,6 +285,9 @@ def build_supplement(
         seed: seeds the diffuser's training and the sampler noise.
         true_reward_fn: ground-truth reward; the supplement's true return and the generated
             reward's error are reported with it.
+        oracle_step: ground-truth dynamics ``(observation, action) -> next observation`` (e.g.
+            ``partial(torchrl_ftb.envs.oracle_step, "hopper")``); the supplement's per-step
+            dynamics error (:func:`~torchrl_ftb.analysis.dynamics_error`) is reported with it.
 
     Returns:
         ``(supplement [M, H] with TRANSITION_KEYS, info)``; ``info`` has the counts, the
@@ -351,6 +355,10 @@ def build_supplement(
     info.update(_describe(generated, returns, true_reward_fn))
     supplement = as_transitions(generated, terminal_on_early_end=ends_in_termination(trajs)) if generated.batch_size[0] \
         else generated
+    if oracle_step is not None and supplement.batch_size[0]:
+        from torchrl_ftb.analysis import dynamics_error
+
+        info["dynamics_error_mean"] = dynamics_error(supplement, oracle_step)["mean"]
     info["num_trajectories"] = int(supplement.batch_size[0])
     info["num_transitions"] = int(supplement.get("mask").sum()) if supplement.batch_size[0] else 0
     info["dataset_transitions"] = int(trajs.get("mask").sum())

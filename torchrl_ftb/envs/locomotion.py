@@ -3,7 +3,8 @@
 The observation of these envs is ``qpos[1:] ‖ qvel`` (the x position is left out, and it
 does not affect the dynamics), so the simulator state can be rebuilt from an observation:
 :func:`oracle_step` steps it, :func:`locomotion_true_reward` gives the exact reward of
-``(s, a)`` and :func:`dynamics_error` checks generated transitions against the simulator.
+``(s, a)``, so ``torchrl_ftb.analysis.dynamics_error(trajs, partial(oracle_step, env))`` checks
+generated transitions against the simulator.
 One caveat: Hopper and Walker2d clip the velocities in the observation to ±10, so a state
 whose true velocity exceeded that is rebuilt with the clipped value.
 
@@ -22,7 +23,6 @@ import functools
 
 import numpy as np
 import torch
-from tensordict import TensorDictBase
 
 __all__ = [
     "LOCOMOTION_ENVS",
@@ -32,7 +32,6 @@ __all__ = [
     "d4rl_normalized_score",
     "oracle_step",
     "locomotion_true_reward",
-    "dynamics_error",
 ]
 
 LOCOMOTION_ENVS = {"hopper": "Hopper-v5", "walker2d": "Walker2d-v5", "halfcheetah": "HalfCheetah-v5"}
@@ -160,7 +159,7 @@ def locomotion_true_reward(env_name: str, observation: torch.Tensor, action: tor
     The simulator is reset to each observation (x = 0, which does not change the reward)
     and stepped with the env's own ``step``; the next state is then a function of
     ``(s, a)``, so no next observation is needed (compare generated next observations with
-    :func:`dynamics_error`).
+    ``torchrl_ftb.analysis.dynamics_error``).
 
     Example:
         >>> env = make_locomotion_env("hopper")
@@ -180,32 +179,3 @@ def locomotion_true_reward(env_name: str, observation: torch.Tensor, action: tor
         _, reward, *_ = u.step(act[i])
         out[i] = reward
     return torch.from_numpy(out).float().reshape(*lead, 1)
-
-
-def dynamics_error(env_name: str, trajectories: TensorDictBase) -> torch.Tensor:
-    """Per-step dynamics error ``||s_{h+1} - ŝ_{h+1}||_1 / |S|`` of a trajectory batch.
-
-    ``ŝ_{h+1}`` is :func:`oracle_step` of ``(s_h, a_h)``; ``s_{h+1}`` is
-    ``("next", "observation")`` if present, else ``observation`` shifted by one step (the
-    last valid step then has no target and gets error 0 and is masked out).
-
-    Args:
-        env_name: locomotion env name.
-        trajectories: ``[N, H]`` trajectory batch with a ``"mask"``.
-
-    Returns:
-        ``[N, H]`` float32 errors, 0 on steps without a target (check ``mask``); average
-        over valid steps with ``err[valid].mean()``.
-    """
-    obs = trajectories.get("observation")
-    mask = trajectories.get("mask")
-    if ("next", "observation") in trajectories.keys(True):
-        target, valid = trajectories.get(("next", "observation")), mask
-    else:
-        target = torch.cat([obs[:, 1:], obs[:, -1:]], 1)
-        valid = mask & torch.cat([mask[:, 1:], torch.zeros_like(mask[:, :1])], 1)
-    err = torch.zeros(mask.shape, dtype=torch.float32)
-    if valid.any():
-        pred = oracle_step(env_name, obs[valid], trajectories.get("action")[valid])
-        err[valid.cpu()] = (pred - target[valid].cpu().float()).abs().mean(-1)
-    return err.to(obs.device)
