@@ -57,6 +57,7 @@ def test_as_transitions_terminal_and_truncated_ends():
     # early end with terminal_on_early_end: kept and terminated
     assert term["mask"][1].sum() == 4 and bool(term["next", "terminated"][1, 3, 0]) and bool(term["next", "done"][1, 3, 0])
     assert term["mask"][2].sum() == 1 and bool(term["next", "terminated"][2, 0, 0])
+    torch.testing.assert_close(term["next", "observation"][1, 3], obs[1, 3])  # terminal: stands in
     # Meta-World-like data (no termination): early ends are truncations, one-step trajectories vanish
     trunc = as_transitions(gen, terminal_on_early_end=False)
     assert trunc.batch_size[0] == 2 and not bool(trunc["next", "terminated"].any())

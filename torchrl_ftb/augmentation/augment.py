@@ -120,7 +120,8 @@ def as_transitions(trajs: TensorDictBase, *, terminal_on_early_end: bool) -> Ten
     terminated[rows[terminal], last[terminal], 0] = True
     keep_trunc = drop & (length > 0)
     truncated[rows[keep_trunc], (length - 1)[keep_trunc], 0] = True
-    next_obs = torch.cat([obs[:, 1:], obs[:, -1:]], 1) * mask[..., None]
+    next_obs = torch.cat([obs[:, 1:], obs[:, -1:]], 1)
+    next_obs = torch.where(terminated, obs, next_obs) * mask[..., None]  # terminal: never bootstrapped
     out = trajs.select(*GENERATED_KEYS).clone()
     out.set("mask", mask)
     m3 = mask[..., None]
