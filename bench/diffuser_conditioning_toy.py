@@ -1,0 +1,118 @@
+"""Does the ``cpu``-preset diffuser follow its condition at Meta-World's horizon on the toy task?
+
+The Meta-World conditioning benches (``bench/diffuser_conditioning.py``) find that the
+``cpu`` preset ignores its condition at H = 500. This one separates the horizon from the data:
+the toy task (closed-form reward, ``torchrl_ftb.testing``) at the same horizon, blocks by
+true return (K = 5), adjacent-block pairs, the ``cpu`` preset's training numbers, and every
+``--steps / --evals`` steps 8 conditions per block B1–B4 sampled with the preset's sampler
+(DDPM 25, guidance 1.2). Each sample's true return is recomputed from its generated actions.
+``--distractor-dims D`` appends D observation dimensions that carry nothing about the reward
+(a per-trajectory constant plus per-step noise, like Meta-World's goal and unused object
+coordinates), to test the dimension of the data separately.
+
+    python bench/diffuser_conditioning_toy.py --horizon 500 --steps 1500
+    python bench/diffuser_conditioning_toy.py --horizon 500 --steps 1500 --distractor-dims 36
+
+Writes ``bench/results/diffuser_conditioning/toy-H<h>-D<d>-<steps>.json`` (command, config,
+commit, machine, one row per evaluation).
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+from scipy.stats import spearmanr
+from tensordict import TensorDict
+
+from torchrl_ftb.data.labels import true_return
+from torchrl_ftb.diffusion import DiffusionSampler, make_diffuser, run_settings, train_diffuser
+from torchrl_ftb.preference import make_block_pair_buffer, make_blocks
+from torchrl_ftb.provenance import run_record, write_json
+from torchrl_ftb.testing import make_toy_dataset, toy_reward
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def with_distractors(data: TensorDict, dims: int, *, seed: int) -> TensorDict:
+    """Append ``dims`` reward-irrelevant observation dims: per-trajectory constant + 0.05 noise."""
+    if dims == 0:
+        return data
+    g = torch.Generator().manual_seed(seed + 1)
+    n, h = data.batch_size
+    extra = torch.randn(n, 1, dims, generator=g) + 0.05 * torch.randn(n, h, dims, generator=g)
+    out = data.clone()
+    out.set("observation", torch.cat([data["observation"], extra * data["mask"][..., None]], -1))
+    return out
+
+
+def sample_returns(diffuser, data, blocks, *, per_block: int, settings: dict, seed: int) -> dict:
+    cond_idx = torch.cat([torch.nonzero(blocks == k).squeeze(-1)[:per_block] for k in range(int(blocks.max()))])
+    cond = data[cond_idx].select("observation", "action", "mask")
+    sampler = DiffusionSampler(diffuser, sampler=settings["sampler"], steps=settings["sample_steps"],
+                               guidance=settings["guidance"], seed=seed)
+    smp = sampler(TensorDict({"condition": cond}, batch_size=[len(cond_idx)]))["sample"]
+    ret = (toy_reward(smp["observation"], smp["action"]).squeeze(-1) * smp["mask"]).sum(-1)
+    cb = blocks[cond_idx]
+    k_max = int(blocks.max())
+    return {
+        "sample_return_by_condition_block": [float(ret[cb == k].mean()) for k in range(k_max)],
+        "sample_length_by_condition_block": [float(smp["mask"][cb == k].sum(-1).float().mean()) for k in range(k_max)],
+        "spearman_condition_block_vs_sample_return": float(spearmanr(cb.numpy(), ret.numpy()).statistic),
+    }
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--horizon", type=int, default=500)
+    p.add_argument("--num-trajectories", type=int, default=400)
+    p.add_argument("--steps", type=int, default=1500)
+    p.add_argument("--evals", type=int, default=3)
+    p.add_argument("--per-block", type=int, default=8)
+    p.add_argument("--num-blocks", type=int, default=5)
+    p.add_argument("--distractor-dims", type=int, default=0)
+    p.add_argument("--preset", default="cpu")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=int, default=1)
+    args = p.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    torch.manual_seed(args.seed)
+    data = with_distractors(make_toy_dataset(num_trajectories=args.num_trajectories, horizon=args.horizon,
+                                             seed=args.seed), args.distractor_dims, seed=args.seed)
+    returns = true_return(data)
+    blocks = make_blocks(returns, args.num_blocks, seed=args.seed)
+    settings = run_settings(args.preset)
+    buffer = make_block_pair_buffer(data, blocks, batch_size=settings["batch_size"], seed=args.seed)
+    obs_dim = data["observation"].shape[-1]
+    diffuser = make_diffuser(args.preset, obs_dim=obs_dim, action_dim=2, horizon=args.horizon, data=data)
+    out = ROOT / "bench" / "results" / "diffuser_conditioning" / (
+        f"toy-H{args.horizon}-D{args.distractor_dims}-{args.steps}.json")
+    record = {**run_record(config={**vars(args), "settings": settings, "diffuser_config": diffuser.config}),
+              "block_return_mean": [float(returns[blocks == k].mean()) for k in range(int(blocks.max()) + 1)],
+              "block_length_mean": [float(data["mask"][blocks == k].sum(-1).float().mean())
+                                    for k in range(int(blocks.max()) + 1)],
+              "evaluations": []}
+    done = 0
+    with tempfile.TemporaryDirectory() as ckpt:
+        for i in range(args.evals):
+            target = args.steps * (i + 1) // args.evals
+            t0 = time.time()
+            res = train_diffuser(diffuser, buffer, steps=target, lr=settings["lr"], grad_clip=settings["grad_clip"],
+                                 checkpoint_dir=ckpt, checkpoint_every=10**9, resume=True, progress=False,
+                                 seed=args.seed)
+            row = {"step": target, "train_seconds": round(time.time() - t0, 1), "loss": res["final_loss"],
+                   **sample_returns(diffuser, data, blocks, per_block=args.per_block, settings=settings,
+                                    seed=args.seed)}
+            done = target
+            record["evaluations"].append(row)
+            write_json(out, record)
+            print(row, flush=True)
+    print(f"{done} steps -> {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
