@@ -36,8 +36,8 @@ PAPER_TABLE2 = {
 
 def summary(results_dir: Path) -> str:
     """Markdown: per task and method, mean ± std (n) of each kind, and the supplement's returns."""
-    rows = ["| task | method | none | SYNTHETIC | FTB | supplement true return (generated): SYNTHETIC / FTB |",
-            "|---|---|---|---|---|---|"]
+    rows = ["| task | method | none | SYNTHETIC | FTB | supplement true return (generated) [dynamics error] per seed: "
+            "SYNTHETIC ; FTB |", "|---|---|---|---|---|---|"]
     cells = {kind: load_cells(results_dir / kind) for kind in KINDS}
     tasks = sorted({c["env"] for kind in KINDS for c in cells[kind]})
     for task in tasks:
@@ -53,9 +53,10 @@ def summary(results_dir: Path) -> str:
                 if kind != "none":
                     aug = [c["metrics"].get("augmentation", {}) for c in cells[kind]
                            if c["env"] == task and c["method"] == method]
-                    vals = [(a.get("true_return_mean"), a.get("generated_return_mean")) for a in aug
-                            if a.get("true_return_mean") is not None]
-                    sup.append(" / ".join(f"{t:.0f} ({g:.0f})" for t, g in vals) or "—")
+                    vals = [(a["true_return_mean"], a.get("generated_return_mean"), a.get("dynamics_error_mean"))
+                            for a in aug if a.get("true_return_mean") is not None]
+                    sup.append(" / ".join(f"{t:.0f} ({g:.0f})" + (f" [{e:.2f}]" if e is not None else "")
+                                          for t, g, e in vals) or "—")
             rows.append(f"| {task} | {method} | " + " | ".join(out) + " | " + " ; ".join(sup) + " |")
     return "\n".join(rows)
 
