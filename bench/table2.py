@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import statistics
 import sys
 from pathlib import Path
@@ -27,17 +28,21 @@ from table1 import ROOT, _csv, cell_path, load_cells, run_cell  # noqa: E402
 RESULTS_DIR = ROOT / "bench" / "results" / "table2"
 KINDS = ("none", "synthetic", "ftb")
 METHODS = ("td3bc", "iql")
-#: Paper, Table 2 (D4RL, 5 seeds): (Original, SYNTHETIC, FTB) per method
+#: Paper, Table 2 (D4RL v2, 5 seeds): (Original, SYNTHETIC, TrajDiffuser/FTB) per method
 PAPER_TABLE2 = {
-    "hopper-medium-replay-v2": {"td3bc": (60.9, 60.1, 83.0), "iql": (94.7, 86.5, 97.4)},
-    "walker2d-medium-replay-v2": {"td3bc": (81.8, 84.0, 90.2), "iql": (73.9, 90.5, 86.6)},
+    "halfcheetah-medium-replay-v2": {"td3bc": (44.8, 45.4, 44.7), "iql": (44.5, 46.7, 44.1)},
+    "halfcheetah-medium-expert-v2": {"td3bc": (90.8, 85.9, 94.7), "iql": (94.7, 93.6, 92.6)},
+    "hopper-medium-replay-v2": {"td3bc": (64.4, 54.0, 80.2), "iql": (97.4, 102.8, 100.4)},
+    "hopper-medium-expert-v2": {"td3bc": (101.2, 102.5, 101.5), "iql": (107.4, 97.5, 111.2)},
+    "walker2d-medium-replay-v2": {"td3bc": (85.6, 91.9, 93.6), "iql": (82.2, 90.2, 81.6)},
+    "walker2d-medium-expert-v2": {"td3bc": (110.0, 110.1, 110.2), "iql": (111.7, 111.8, 111.3)},
 }
 
 
 def summary(results_dir: Path) -> str:
     """Markdown: per task and method, mean ± std (n) of each kind, and the supplement's returns."""
-    rows = ["| task | method | none | SYNTHETIC | FTB | supplement true return (generated) [dynamics error] per seed: "
-            "SYNTHETIC ; FTB |", "|---|---|---|---|---|---|"]
+    rows = ["| task | method | none | SYNTHETIC | FTB | paper (D4RL v2): none / SYNTHETIC / FTB | supplement true return "
+            "(generated) [dynamics error] per seed: SYNTHETIC ; FTB |", "|---|---|---|---|---|---|---|"]
     cells = {kind: load_cells(results_dir / kind) for kind in KINDS}
     tasks = sorted({c["env"] for kind in KINDS for c in cells[kind]})
     for task in tasks:
@@ -57,7 +62,9 @@ def summary(results_dir: Path) -> str:
                             for a in aug if a.get("true_return_mean") is not None]
                     sup.append(" / ".join(f"{t:.0f} ({g:.0f})" + (f" [{e:.2f}]" if e is not None else "")
                                           for t, g, e in vals) or "—")
-            rows.append(f"| {task} | {method} | " + " | ".join(out) + " | " + " ; ".join(sup) + " |")
+            paper = PAPER_TABLE2.get(re.sub(r"-v\d+$", "", task) + "-v2", {}).get(method)
+            paper_cell = " / ".join(f"{v:.1f}" for v in paper) if paper else "—"
+            rows.append(f"| {task} | {method} | " + " | ".join(out) + f" | {paper_cell} | " + " ; ".join(sup) + " |")
     return "\n".join(rows)
 
 
