@@ -8,10 +8,13 @@ true return (K = 5), adjacent-block pairs, the ``cpu`` preset's training numbers
 (DDPM 25, guidance 1.2). Each sample's true return is recomputed from its generated actions.
 ``--distractor-dims D`` appends D observation dimensions that carry nothing about the reward
 (a per-trajectory constant plus per-step noise, like Meta-World's goal and unused object
-coordinates), to test the dimension of the data separately.
+coordinates), to test the dimension of the data separately. D = 15 gives 20 diffused
+dimensions, button-press-v3's count once its constant ones are left out (D = 36, all 39 of
+Meta-World's observation dims, would exceed the preset's 32 full-resolution channels, a
+bottleneck ``make_diffuser`` warns about, and so test something else).
 
     python bench/diffuser_conditioning_toy.py --horizon 500 --steps 1500
-    python bench/diffuser_conditioning_toy.py --horizon 500 --steps 1500 --distractor-dims 36
+    python bench/diffuser_conditioning_toy.py --horizon 500 --steps 1500 --distractor-dims 15
 
 Writes ``bench/results/diffuser_conditioning/toy-H<h>-D<d>-<steps>.json`` (command, config,
 commit, machine, one row per evaluation).
