@@ -148,6 +148,10 @@ def test_build_supplement_is_cached_and_checked(supplements):
         build_supplement("ftb", data, **common)
     with pytest.raises(ValueError, match="kind must be"):
         build_supplement("none", data, **common)
+    with pytest.raises(ValueError, match=r"unknown flow option\(s\) \['topk'\]"):
+        build_supplement("ftb", data, **{**common, "flow": {"topk": 3}})
+    with pytest.raises(ValueError, match="unknown diffuser option"):
+        build_supplement("ftb", data, **{**common, "diffuser": {"preset": "tiny", "step": 3}})
 
 
 def test_baselines_recipe_with_augmentation(tmp_path):

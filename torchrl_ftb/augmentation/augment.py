@@ -39,6 +39,7 @@ Example:
 from __future__ import annotations
 
 import hashlib
+import inspect
 import json
 import math
 from pathlib import Path
@@ -236,6 +237,15 @@ def synthetic_supplement(
                   "valid_rate": float(valid.double().mean())}
 
 
+def _check_options(options: Mapping[str, Any], fn: Callable, section: str, *, reserved: tuple = ()) -> None:
+    """Raise a clear error for option names ``fn`` does not take (or that the stage sets itself)."""
+    allowed = [k for k, p in inspect.signature(fn).parameters.items()
+               if p.kind is inspect.Parameter.KEYWORD_ONLY and k not in reserved]
+    unknown = sorted(set(options) - set(allowed))
+    if unknown:
+        raise ValueError(f"build_supplement: unknown {section} option(s) {unknown}; valid: {sorted(allowed)}")
+
+
 def _fingerprint(trajs: TensorDictBase) -> str:
     """A content hash of a dataset's valid (observation, action, reward) steps."""
     mask = trajs.get("mask")
@@ -280,8 +290,9 @@ def build_supplement(
             ``grad_clip``, ``sampler``, ``sample_steps``, ``guidance``; ``None``: the preset's),
             ``checkpoint_every``, ``autocast_bf16``.
         flow: :func:`flow_supplement` options (``top_k``, ``flow_steps``, ``threshold``, ...).
-        synthetic: ``{"num_samples": ...}`` (default: ``flow["top_k"]``, as many trajectories as
-            FTB's supplement can hold at most).
+        synthetic: :func:`synthetic_supplement` options, ``num_samples`` (default: ``flow["top_k"]``,
+            as many trajectories as FTB's supplement can hold at most), ``batch_size``,
+            ``action_limit``; validity as the flow's (``flow["max_abs_z"]``, ``["action_tolerance"]``).
         num_blocks: return blocks ``K`` of the conditional diffuser (``"ftb"``).
         seed: seeds the diffuser's training and the sampler noise.
         true_reward_fn: ground-truth reward; the supplement's true return and the generated
@@ -303,8 +314,12 @@ def build_supplement(
     d = dict(diffuser)
     preset, overrides = str(d.pop("preset", "cpu")), dict(d.pop("overrides", None) or {})
     checkpoint_every, bf16 = int(d.pop("checkpoint_every", 500)), bool(d.pop("autocast_bf16", False))
+    _check_options(d, run_settings, "diffuser")
     settings = run_settings(preset, **d)
     flow_opts = dict(flow)
+    _check_options(flow_opts, flow_supplement, "flow", reserved=("true_reward_fn", "seed", "logger", "progress"))
+    _check_options(dict(synthetic or {}), synthetic_supplement, "synthetic", reserved=(
+        "normalizer", "min_length", "max_abs_z", "action_tolerance"))
     syn = {"num_samples": int(flow_opts.get("top_k", 100)), **dict(synthetic or {})}
     config = {"kind": kind, "dataset": _fingerprint(trajs), "preset": preset, "overrides": overrides,
               "settings": settings, "seed": int(seed)}
@@ -349,10 +364,10 @@ def build_supplement(
         info["block_sizes"] = torch.bincount(block_ids).tolist()
     else:
         min_length = max(2, int(trajs.get("mask").sum(-1).min()) // 2)
-        generated, info["synthetic"] = synthetic_supplement(
-            sampler, num_samples=int(syn["num_samples"]), normalizer=model.normalizer, min_length=min_length,
+        generated, info["synthetic"] = synthetic_supplement(  # the flow's validity rules
+            sampler, normalizer=model.normalizer, min_length=min_length,
             max_abs_z=float(flow_opts.get("max_abs_z", 30.0)),
-            action_tolerance=float(flow_opts.get("action_tolerance", 0.5)))
+            action_tolerance=float(flow_opts.get("action_tolerance", 0.5)), **syn)
     info.update(_describe(generated, returns, true_reward_fn))
     supplement = as_transitions(generated, terminal_on_early_end=ends_in_termination(trajs)) if generated.batch_size[0] \
         else generated

@@ -116,7 +116,7 @@ def run_settings(
     sample_steps: int | None = None,
     guidance: float | None = None,
 ) -> dict:
-    """Training and sampling numbers of preset ``name``, with the given ones in their place.
+    """Training and sampling numbers of ``preset``, with the given ones in their place.
 
     ``None`` keeps the preset's number, except ``grad_clip``: ``"preset"`` keeps the preset's,
     ``None`` means no clipping (the authors').
