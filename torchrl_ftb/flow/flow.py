@@ -186,7 +186,8 @@ class FlowResult:
     """Output of :class:`FlowToBetter`.
 
     Attributes:
-        trajectories: the improved set, ``[k, H]`` with ``observation``, ``action``, ``mask``.
+        trajectories: the improved set, ``[k, H]`` with ``observation``, ``action``, ``mask``
+            (and ``("next", "reward")`` with ``keep_reward``).
         scores: their scores ``s_psi`` ``[k]``.
         source_step: flow step that produced each final trajectory ``[k]`` (0: original).
         original: the starting top-k ``[k, H]`` (same keys); ``original_scores`` ``[k]``.
