@@ -542,6 +542,7 @@ def resimulate_replay(compact: dict, *, max_episodes: int | None = None,
         "early_terminations"}`` against the recorded returns (0 and 0 when exact).
     """
     import gymnasium as gym
+    import mujoco
     from tqdm import tqdm
 
     if compact.get("format") != COMPACT_REPLAY_FORMAT:
@@ -557,6 +558,9 @@ def resimulate_replay(compact: dict, *, max_episodes: int | None = None,
     episodes, max_err, early = [], 0.0, 0
     for e in tqdm(range(len(lengths)), desc=f"re-simulate {compact['env_id']}", disable=not progress):
         init = compact["init_state"][e].numpy()
+        # as a reset does: a fresh mjData (the previous episode's solver warm start would otherwise
+        # carry over and, with HalfCheetah's many contacts, change the trajectory)
+        mujoco.mj_resetData(sim.model, sim.data)
         sim.set_state(init[:nq], init[nq:])
         n = lengths[e]
         obs = np.empty((n + 1, sim.observation_space.shape[0]))
