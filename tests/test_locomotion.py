@@ -25,7 +25,7 @@ from torchrl_ftb.datasets.locomotion import (
 from torchrl_ftb.datasets.registry import get_dataset_generator
 from torchrl_ftb.envs import locomotion_true_reward
 
-SHIPPED_ENVS = ("hopper", "walker2d")
+SHIPPED_ENVS = ("hopper", "walker2d", "halfcheetah")
 
 
 @pytest.fixture(scope="module")
