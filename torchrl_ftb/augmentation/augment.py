@@ -51,7 +51,9 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl_ftb.data import atomic_torch_save, read_checkpoint, validate_trajectories
 from torchrl_ftb.data.labels import true_return
 from torchrl_ftb.data.trajectories import atomic_write_text
+from torchrl_ftb.diffusion import DiffusionSampler, make_diffuser, run_settings, train_diffuser
 from torchrl_ftb.flow import FlowResult, FlowToBetter, masked_true_return, trajectory_validity
+from torchrl_ftb.preference import make_block_pair_buffer, make_blocks, make_trajectory_buffer
 
 __all__ = [
     "AUGMENTATIONS",
@@ -148,10 +150,6 @@ def merge_datasets(original: TensorDictBase, supplement: TensorDictBase) -> Tens
     return torch.cat([a, b], 0)
 
 
-def _generated_return(trajs: TensorDictBase) -> torch.Tensor:
-    return true_return(trajs)
-
-
 def flow_supplement(
     data: TensorDictBase,
     sampler: Callable[[TensorDictBase], TensorDictBase],
@@ -187,12 +185,12 @@ def flow_supplement(
         (observation, action, mask, generated reward), ``M <= top_k``.
     """
     flow = FlowToBetter(
-        sampler, _generated_return, top_k=top_k, threshold=threshold, flow_steps=flow_steps,
+        sampler, true_return, top_k=top_k, threshold=threshold, flow_steps=flow_steps,
         early_stop_fraction=early_stop_fraction, max_abs_z=max_abs_z, action_tolerance=action_tolerance,
         min_length=min_length, true_reward_fn=true_reward_fn, batch_size=batch_size, seed=seed,
         keep_reward=True, logger=logger, progress=progress,
     )
-    result = flow(data, scores=_generated_return(data))
+    result = flow(data, scores=true_return(data))
     return result.trajectories[result.source_step > 0].clone(), result
 
 
@@ -305,9 +303,6 @@ def build_supplement(
         ``(supplement [M, H] with TRANSITION_KEYS, info)``; ``info`` has the counts, the
         generated vs the dataset's returns, the diffuser's training summary and ``path``.
     """
-    from torchrl_ftb.diffusion import DiffusionSampler, make_diffuser, run_settings, train_diffuser
-    from torchrl_ftb.preference import make_block_pair_buffer, make_blocks, make_trajectory_buffer
-
     if kind not in ("ftb", "synthetic"):
         raise ValueError(f"build_supplement: kind must be 'ftb' or 'synthetic' (see AUGMENTATIONS), got {kind!r}")
     validate_trajectories(trajs, name="build_supplement: dataset", require=[REWARD_KEY])
@@ -340,13 +335,14 @@ def build_supplement(
     horizon = int(trajs.batch_size[1])
     model = make_diffuser(preset, obs_dim=obs_dim, action_dim=act_dim, horizon=horizon, reward_channel=True,
                           unconditional=kind == "synthetic", data=trajs, **overrides).to(device)
-    keys = GENERATED_KEYS
-    returns = _generated_return(trajs).cpu()
+    returns = true_return(trajs).cpu()
     if kind == "ftb":
         block_ids = make_blocks(returns, int(num_blocks), seed=int(seed))
-        buffer = make_block_pair_buffer(trajs, block_ids, batch_size=settings["batch_size"], seed=seed, keys=keys)
+        buffer = make_block_pair_buffer(trajs, block_ids, batch_size=settings["batch_size"], seed=seed,
+                                       keys=GENERATED_KEYS)
     else:
-        buffer = make_trajectory_buffer(trajs, batch_size=settings["batch_size"], seed=seed, keys=keys)
+        buffer = make_trajectory_buffer(trajs, batch_size=settings["batch_size"], seed=seed,
+                                       keys=GENERATED_KEYS)
     train = train_diffuser(model, buffer, steps=settings["steps"], lr=settings["lr"],
                            grad_clip=settings["grad_clip"], logger=logger, checkpoint_dir=path / "diffuser",
                            checkpoint_every=checkpoint_every, resume=resume, progress=progress, device=device,
@@ -372,7 +368,7 @@ def build_supplement(
     supplement = as_transitions(generated, terminal_on_early_end=ends_in_termination(trajs)) if generated.batch_size[0] \
         else generated
     if oracle_step is not None and supplement.batch_size[0]:
-        from torchrl_ftb.analysis import dynamics_error
+        from torchrl_ftb.analysis import dynamics_error  # here: the package pulls in matplotlib
 
         info["dynamics_error_mean"] = dynamics_error(supplement, oracle_step)["mean"]
     info["num_trajectories"] = int(supplement.batch_size[0])
@@ -389,7 +385,7 @@ def _describe(generated: TensorDictBase, data_returns: torch.Tensor, true_reward
                            "dataset_return_max": float(data_returns.max())}
     if not generated.batch_size[0]:
         return out
-    gen_ret = _generated_return(generated).cpu()
+    gen_ret = true_return(generated).cpu()
     out.update(generated_return_mean=float(gen_ret.mean()), generated_return_max=float(gen_ret.max()),
                generated_length_mean=float(generated.get("mask").sum(-1).double().mean()))
     if true_reward_fn is not None:
