@@ -52,7 +52,13 @@ from torchrl_ftb.data import atomic_torch_save, read_checkpoint, validate_trajec
 from torchrl_ftb.data.labels import true_return
 from torchrl_ftb.data.trajectories import atomic_write_text
 from torchrl_ftb.diffusion import DiffusionSampler, make_diffuser, run_settings, train_diffuser
-from torchrl_ftb.flow import FlowResult, FlowToBetter, masked_true_return, trajectory_validity
+from torchrl_ftb.flow import (
+    FlowResult,
+    FlowToBetter,
+    default_min_length,
+    masked_true_return,
+    trajectory_validity,
+)
 from torchrl_ftb.preference import make_block_pair_buffer, make_blocks, make_trajectory_buffer
 
 __all__ = [
@@ -359,7 +365,7 @@ def build_supplement(
         info["flow_stats"] = result.stats
         info["block_sizes"] = torch.bincount(block_ids).tolist()
     else:
-        min_length = max(2, int(trajs.get("mask").sum(-1).min()) // 2)
+        min_length = default_min_length(trajs)
         generated, info["synthetic"] = synthetic_supplement(  # the flow's validity rules
             sampler, normalizer=model.normalizer, min_length=min_length,
             max_abs_z=float(flow_opts.get("max_abs_z", 30.0)),

@@ -63,7 +63,7 @@ from torchrl_ftb.diffusion.normalizer import TrajectoryNormalizer
 from torchrl_ftb.preference import ScoreModel, make_blocks, score_trajectories
 
 __all__ = [
-    "FlowToBetter", "FlowResult", "adaptive_flow_steps", "improves", "masked_true_return",
+    "FlowToBetter", "FlowResult", "adaptive_flow_steps", "default_min_length", "improves", "masked_true_return",
     "normalized_scores", "trajectory_validity",
 ]
 
@@ -156,6 +156,11 @@ def trajectory_validity(
     valid = finite & in_bounds & long_enough & actions_ok
     return {"finite": finite, "in_bounds": in_bounds, "long_enough": long_enough, "actions_ok": actions_ok,
             "valid": valid}
+
+
+def default_min_length(trajs: TensorDictBase) -> int:
+    """Validity's default shortest generated length: half the shortest of ``trajs``, at least 2."""
+    return max(2, int(trajs.get("mask").sum(-1).min()) // 2)
 
 
 def masked_true_return(trajs: TensorDictBase, true_reward_fn: Callable) -> torch.Tensor:
@@ -432,7 +437,7 @@ class FlowToBetter(nn.Module):
         original = data[top_idx].clone()
         min_length = self.min_length
         if min_length is None:
-            min_length = max(2, int(original.get("mask").sum(-1).min()) // 2)
+            min_length = default_min_length(original)
 
         current = original.clone()
         cur_scores = scores[top_idx].clone()
