@@ -37,7 +37,7 @@ from torchrl_ftb.datasets import dataset_kwargs, make_dataset  # noqa: E402
 from torchrl_ftb.diffusion import DiffusionSampler, get_preset, load_diffuser  # noqa: E402
 from torchrl_ftb.envs import metaworld_frame_stack_error, true_reward_fn  # noqa: E402
 from torchrl_ftb.flow import (  # noqa: E402
-    FlowToBetter, improves, masked_true_return, normalized_scores, trajectory_validity,
+    FlowToBetter, default_min_length, improves, masked_true_return, normalized_scores, trajectory_validity,
 )
 from torchrl_ftb.preference import correlations, load_score_model, score_trajectories  # noqa: E402
 from torchrl_ftb.provenance import run_record, write_json  # noqa: E402
@@ -89,9 +89,9 @@ def _summary(mask: torch.Tensor, d_true: torch.Tensor) -> dict:
 
 def summarize(paths: list[Path]) -> str:
     """Markdown table of saved diagnostics, recomputed from their per-sample records."""
-    rows = ["| file | guidance | valid | accepted | follows condition: score / return / length | score: condition → sample "
+    rows = ["| file | guidance | strength | valid | accepted | follows condition: score / return / length | score: condition → sample "
             "(dataset mean) | true return: condition → sample | Spearman(score gain, true gain) | accepted with true gain > 0 |",
-            "|---|---|---|---|---|---|---|---|---|"]
+            "|---|---|---|---|---|---|---|---|---|---|"]
     for path in paths:
         rec = json.loads(path.read_text())
         per, res = rec["per_sample"], rec["results"]
@@ -103,7 +103,7 @@ def summarize(paths: list[Path]) -> str:
         follow = [spearman(t[f"{k}_old"], t[f"{k}_new"]) for k in ("score", "true", "length")]
         ds_mean = res.get("mean_condition_vs_sample", {}).get("dataset_score_mean", float("nan"))
         rows.append(
-            f"| {path.stem} | {res['guidance']} | {valid.double().mean():.2f} | {int(acc.sum())} | "
+            f"| {path.stem} | {res['guidance']} | {res.get('strength', 1.0)} | {valid.double().mean():.2f} | {int(acc.sum())} | "
             + " / ".join(f"{v:+.2f}" for v in follow)
             + f" | {t['score_old'].mean():.0f} → {t['score_new'].mean():.0f} ({ds_mean:.0f}) | "
             f"{t['true_old'].mean():.0f} → {t['true_new'].mean():.0f} | {res['spearman_score_gain_vs_true_gain']:.2f} | "
@@ -141,6 +141,8 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=None, help="sampler steps (default: the run's)")
     parser.add_argument("--guidance", type=float, default=None, help="default: the run's")
     parser.add_argument("--seed", type=int, default=None, help="default: the run's seed")
+    parser.add_argument("--strength", type=float, default=None,
+                        help="SDEdit strength in (0, 1] (DiffusionSampler(strength=...)); default: the run's")
     args = parse_run_args(parser, summarize)
     if args is None:
         return
@@ -152,9 +154,10 @@ def main() -> None:
     model = load_score_model(run / "checkpoints" / "score_model.pt")
     diffuser = load_diffuser(run / "checkpoints" / "diffuser" / "diffuser_last.pt")
     seed = int(cfg.seed if args.seed is None else args.seed)
+    strength = float(args.strength if args.strength is not None else f.get("strength", 1.0))
     # the recipe's sampler: a seeded generator, so this is the run's first flow step
     sampler = DiffusionSampler(diffuser, sampler=sampler_name, steps=int(steps), guidance=float(guidance),
-                               generator=torch.Generator().manual_seed(seed))
+                               generator=torch.Generator().manual_seed(seed), strength=strength)
     scores = score_trajectories(model, trajs).double()
     s_min, s_max = float(scores.min()), float(scores.max())
     top = scores.argsort(descending=True)[: int(f.top_k)]
@@ -166,7 +169,7 @@ def main() -> None:
     samples = flow.generate(cond)
     sample_seconds = time.time() - t0
     new_scores = score_trajectories(model, samples).double()
-    min_length = max(2, int(cond["mask"].sum(-1).min()) // 2) if f.min_length is None else int(f.min_length)
+    min_length = default_min_length(cond) if f.min_length is None else int(f.min_length)
     checks = trajectory_validity(samples, normalizer=diffuser.normalizer, max_abs_z=float(f.max_abs_z),
                                  min_length=min_length, action_tolerance=float(f.action_tolerance))
     valid = checks["valid"]
@@ -187,6 +190,7 @@ def main() -> None:
     results = {
         "num_samples": int(top.numel()), "sample_seconds": round(sample_seconds, 1),
         "sampler": sampler_name, "steps": int(steps), "guidance": float(guidance), "seed": seed,
+        "strength": strength,
         "valid_rate": float(valid.double().mean()), "improve_rate": float(better.double().mean()),
         "accept_rate": float(accepted.double().mean()),
         "spearman_score_gain_vs_true_gain": spearman(d_score[valid], d_true[valid]),

@@ -21,7 +21,7 @@ from tensordict import TensorDict
 
 from torchrl_ftb.datasets import dataset_kwargs, make_dataset
 from torchrl_ftb.diffusion import DiffusionSampler, load_diffuser
-from torchrl_ftb.flow import trajectory_validity
+from torchrl_ftb.flow import default_min_length, trajectory_validity
 from torchrl_ftb.provenance import run_record, write_json
 
 
@@ -45,7 +45,7 @@ def main() -> None:
     sampler = DiffusionSampler(diffuser, sampler=args.sampler, steps=args.steps,
                                generator=torch.Generator().manual_seed(args.seed))
     sample = sampler(TensorDict({"condition": cond}, [args.num]))["sample"]
-    min_length = int(cond["mask"].sum(-1).min()) // 2
+    min_length = default_min_length(cond)
     checks = trajectory_validity(sample, normalizer=diffuser.normalizer, max_abs_z=float(cfg.flow.max_abs_z),
                                  min_length=min_length, action_tolerance=float(cfg.flow.action_tolerance))
     z = diffuser.normalizer.normalize(torch.cat([sample["observation"], sample["action"]], -1)).abs()

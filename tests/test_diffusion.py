@@ -157,6 +157,56 @@ def test_samplers_with_exact_denoiser_land_on_data(sampler, steps):
     assert (data["mask"].sum(-1) < 16).any()  # the check covers padded (shorter) trajectories
 
 
+@pytest.mark.parametrize("sampler,steps", [("ddpm", 25), ("ddim", 20), ("dpm++", 20)])
+def test_sdedit_strength_edits_its_start(sampler, steps):
+    """SDEdit: with the Bayes-optimal eps of a finite trajectory set, a chain started from a
+    data point noised to strength 0.3 must come back to that same point (the posterior at
+    that noise level is concentrated on it), while strength 1 (pure noise) lands on arbitrary
+    points; strength s runs round(s * steps) denoiser calls. Guards the truncated schedule,
+    the start noising and DPM-Solver++'s step index."""
+    data = make_toy_dataset(num_trajectories=64, horizon=16, seed=0, noise=0.3)
+    d = make_diffuser("tiny", obs_dim=3, action_dim=2, horizon=16).fit_normalizer(data)
+    x_data = d.model_input(d.raw_data_from_td(data), data["mask"])
+    flat = x_data.reshape(64, -1).double()
+    abar = d.process.scheduler.alphas_cumprod.double()
+    calls = []
+
+    def eps(x, t):
+        calls.append(int(t[0]))
+        a, s = abar[t].sqrt()[:, None], (1 - abar[t]).sqrt()[:, None]
+        xf = x.reshape(len(x), -1).double()
+        w = torch.softmax(-((xf[:, None] - a[:, :, None] * flat[None]) ** 2).sum(-1) / (2 * s**2), -1)
+        return ((xf - a * (w @ flat)) / s).reshape(x.shape).float()
+
+    def nearest(strength):
+        calls.clear()
+        x = d.process.sample(eps, (32, 16, d.transition_dim), sampler=sampler, steps=steps,
+                             generator=torch.Generator().manual_seed(0), x0_bounds=d.x0_bounds(),
+                             x_init=x_data[:32], strength=strength)
+        return torch.cdist(x.reshape(32, -1).double(), flat).argmin(-1)
+
+    kept = (nearest(0.3) == torch.arange(32)).float().mean()
+    assert len(calls) == round(0.3 * steps) and calls == sorted(calls, reverse=True)
+    assert kept == 1.0, (sampler, kept)
+    from_noise = (nearest(1.0) == torch.arange(32)).float().mean()
+    assert len(calls) == steps
+    assert from_noise < 0.3, (sampler, from_noise)
+
+
+def test_strength_one_ignores_init_and_bad_strength_raises(data):
+    d = _diffuser(data)
+    g = lambda: torch.Generator().manual_seed(3)  # noqa: E731
+    plain = d.generate(data[:3], sampler="ddim", steps=4, generator=g(), use_ema=False)
+    same = d.generate(data[:3], sampler="ddim", steps=4, generator=g(), use_ema=False, init=data[:3], strength=1.0)
+    assert torch.equal(plain["observation"], same["observation"])
+    edit = d.generate(data[:3], sampler="ddim", steps=4, generator=g(), use_ema=False, init=data[:3], strength=0.5)
+    assert not torch.equal(plain["observation"], edit["observation"])
+    with pytest.raises(ValueError, match="strength"):
+        DiffusionSampler(d, strength=0.0)
+    with pytest.raises(ValueError, match="init"):
+        d.generate(data[:3], sampler="ddim", steps=4, init=data[:2], strength=0.5, use_ema=False)
+
+
 @pytest.mark.parametrize("sampler", ["ddim", "dpm++", "ddpm"])
 def test_sampler_denoiser_calls_and_batched_guidance(data, sampler):
     d = _diffuser(data)

@@ -372,8 +372,14 @@ class TrajectoryDiffuser(nn.Module):
         use_ema: bool = True,
         autocast_bf16: bool = False,
         progress: bool = False,
+        init: TensorDictBase | None = None,
+        strength: float = 1.0,
     ) -> TensorDict:
         """Generate trajectories, one per condition (or ``num_samples`` unconditionally).
+
+        With ``init`` and ``strength < 1`` each sample is an SDEdit *edit* of its ``init``
+        trajectory (:meth:`DiffusionProcess.sample`): the chain starts from ``init`` noised to
+        the ``strength`` share of the sampler's steps instead of from pure noise.
 
         Args:
             condition: trajectory batch ``[B, Hc]`` (observation, action, mask, reward if
@@ -387,6 +393,9 @@ class TrajectoryDiffuser(nn.Module):
             use_ema: sample with the EMA weights (default).
             autocast_bf16: run the networks under bf16 autocast.
             progress: tqdm bar over sampler steps.
+            init: trajectory batch ``[B, H]`` to edit (e.g. the condition itself).
+            strength: share of the sampler's steps run from the noised ``init``, in (0, 1]
+                (1: pure noise, ``init`` unused).
 
         Returns:
             Trajectory batch ``[B, H]`` with ``observation``, ``action``, ``mask`` (from the
@@ -424,9 +433,16 @@ class TrajectoryDiffuser(nn.Module):
                 with ctx:
                     return self.guided_eps(x_t, t, cond_emb, cond_mask, guidance=guidance, networks=nets)
 
+            x_init = None
+            if init is not None and strength < 1.0:
+                if tuple(init.batch_size) != (num_samples, horizon) or "mask" not in init.keys():
+                    raise ValueError(f"generate: 'init' must be a trajectory batch [{num_samples}, {horizon}] with "
+                                     f"a 'mask', got {list(init.batch_size)}")
+                init = init.to(device)
+                x_init = self.model_input(self.raw_data_from_td(init, name="init"), init.get("mask"))
             x = self.process.sample(denoise, (num_samples, horizon, self.transition_dim), sampler=sampler,
                                     steps=steps, generator=generator, device=device, progress=progress,
-                                    x0_bounds=self.x0_bounds())
+                                    x0_bounds=self.x0_bounds(), x_init=x_init, strength=strength)
         finally:
             nets.train(was_training)
         return self.decode(x)

@@ -130,8 +130,16 @@ class DiffusionProcess:
         device: torch.device | str | None = None,
         progress: bool = False,
         x0_bounds: tuple[torch.Tensor, torch.Tensor] | None = None,
+        x_init: torch.Tensor | None = None,
+        strength: float = 1.0,
     ) -> torch.Tensor:
-        """Run the reverse process from pure noise.
+        """Run the reverse process from pure noise, or from a noised ``x_init`` (SDEdit).
+
+        With ``x_init`` and ``strength < 1`` (SDEdit, Meng et al. 2022; diffusers' img2img
+        ``strength``), the chain runs only the last ``n = max(1, round(strength * steps))`` of
+        the sampler's ``steps`` timesteps, starting from ``x_init`` noised to the first of them
+        with the training marginal ``q(x_t | x_0 = x_init)``: a small ``strength`` edits
+        ``x_init``, ``strength = 1`` ignores it (pure noise, as without ``x_init``).
 
         Args:
             denoise: ``eps = denoise(x_t [B, ...], t [B])`` (guidance already applied).
@@ -143,14 +151,28 @@ class DiffusionProcess:
             progress: show a tqdm bar over the steps.
             x0_bounds: ``(low, high)`` broadcastable to ``shape``: clamp the predicted ``x_0``
                 (``None``: no clipping).
+            x_init: model-space start ``shape`` for an edit (``None``: pure noise).
+            strength: share of the sampler's steps run from the noised ``x_init``, in (0, 1].
 
         Returns:
             ``x_0`` estimate, float32 ``shape``.
         """
+        if not 0.0 < float(strength) <= 1.0:
+            raise ValueError(f"sample: strength must be in (0, 1], got {strength}")
         sched = self.make_scheduler(sampler, steps)
         x = randn_tensor(tuple(shape), generator=generator, device=torch.device(device or "cpu"),
                          dtype=torch.float32) * sched.init_noise_sigma
-        for t in tqdm(sched.timesteps, desc=f"sampling ({sampler})", disable=not progress, leave=False):
+        timesteps = sched.timesteps
+        if x_init is not None and strength < 1.0:
+            if tuple(x_init.shape) != tuple(shape):
+                raise ValueError(f"sample: x_init has shape {list(x_init.shape)}, expected {list(shape)}")
+            start = len(timesteps) - max(1, round(float(strength) * len(timesteps)))
+            timesteps = timesteps[start:]
+            if hasattr(sched, "set_begin_index"):  # multistep solvers keep a step index
+                sched.set_begin_index(start)
+            t0 = timesteps[:1].to(x.device).long().expand(x.shape[0])
+            x = self.add_noise(x_init.to(x.device, torch.float32), x, t0)  # x: the drawn noise
+        for t in tqdm(timesteps, desc=f"sampling ({sampler})", disable=not progress, leave=False):
             t_batch = t.to(x.device).long().expand(x.shape[0])
             eps = denoise(x, t_batch).float()
             if x0_bounds is not None:

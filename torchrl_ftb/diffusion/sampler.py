@@ -51,6 +51,9 @@ class DiffusionSampler(TensorDictModuleBase):
         sample_key: output sub-td key. Default ``"sample"``.
         num_samples: for an unconditional diffuser without a condition in the input: how many.
         progress: tqdm bar over sampler steps.
+        strength: SDEdit strength in (0, 1]: below 1 each sample is an edit of its condition
+            (the chain starts from the condition noised to that share of the ``steps``;
+            :meth:`TrajectoryDiffuser.generate`). 1 (default, the paper): from pure noise.
     """
 
     def __init__(
@@ -69,10 +72,16 @@ class DiffusionSampler(TensorDictModuleBase):
         sample_key: NestedKey = "sample",
         num_samples: int | None = None,
         progress: bool = False,
+        strength: float = 1.0,
     ) -> None:
         super().__init__()
         if sampler not in SAMPLERS:
             raise ValueError(f"DiffusionSampler: unknown sampler {sampler!r}; choose one of {SAMPLERS}")
+        if not 0.0 < float(strength) <= 1.0:
+            raise ValueError(f"DiffusionSampler: strength must be in (0, 1], got {strength}")
+        if strength < 1.0 and diffuser.unconditional:
+            raise ValueError("DiffusionSampler: strength < 1 edits the condition; this diffuser is unconditional")
+        self.strength = float(strength)
         self.diffuser = diffuser
         self.sampler, self.steps, self.guidance = sampler, int(steps), float(guidance)
         self.seed, self.generator = seed, generator
@@ -102,7 +111,8 @@ class DiffusionSampler(TensorDictModuleBase):
             sample = self.diffuser.generate(None, num_samples=n, **opts)
         else:
             chunk = self.max_batch or cond.batch_size[0]
-            parts = [self.diffuser.generate(cond[i:i + chunk], **opts) for i in range(0, cond.batch_size[0], chunk)]
+            parts = [self.diffuser.generate(cond[i:i + chunk], init=cond[i:i + chunk], strength=self.strength, **opts)
+                     for i in range(0, cond.batch_size[0], chunk)]
             sample = torch.cat(parts, 0) if len(parts) > 1 else parts[0]
         if tensordict.device is not None:
             sample = sample.to(tensordict.device)
