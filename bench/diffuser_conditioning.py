@@ -10,7 +10,10 @@ from every block but the last, scoring the samples with the run's score model an
 true-reward oracle. Reported per evaluation: the Spearman correlation of the sample's score
 (and true return) with the condition's block (an unconditional model gives ~0), the mean
 sample score / true return per condition block next to the dataset's mean of the block the
-pairs taught it to produce (k + 1), and the mean generated length. JSON to
+pairs taught it to produce (k + 1), and the mean generated length. ``--pairs copy`` trains on
+pairs whose target *is* the condition (a copy task: can the condition path carry a whole
+trajectory at all?); then the sample should match its condition (``spearman_sample_score_vs_
+condition_score`` near 1), whatever the blocks. JSON to
 ``bench/results/diffuser_conditioning/<task>-<run>-<tag>.json`` after every evaluation
 (partial results survive a kill). ``--device cuda --autocast-bf16 --max-minutes M`` is the
 GPU check (paper preset) that decides whether our CPU-budget findings are about the budget.
@@ -31,6 +34,8 @@ import time
 from pathlib import Path
 
 import torch
+import yaml
+from tensordict import TensorDict
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -120,6 +125,11 @@ def main() -> None:
     parser.add_argument("--preset", default=None,
                         help="train a FRESH diffuser of this preset (cpu | paper) on the run's pairs instead of "
                              "continuing the run's own (with its preset's batch size and lr)")
+    parser.add_argument("--override", nargs="*", default=[], metavar="KEY=VALUE",
+                        help="with --preset: model-field overrides of the fresh diffuser (YAML values), "
+                             "e.g. concat_condition=true")
+    parser.add_argument("--pairs", default="blocks", choices=("blocks", "copy"),
+                        help="blocks: the run's adjacent-block pairs (FTB); copy: target = condition")
     parser.add_argument("--device", default=None, help="default: cuda if available, else cpu")
     parser.add_argument("--autocast-bf16", action="store_true", help="bf16 autocast in training and sampling")
     parser.add_argument("--max-minutes", type=float, default=None,
@@ -129,6 +139,8 @@ def main() -> None:
         return
     if args.steps is None:
         parser.error("--steps is required with --run-dir")
+    if args.override and (args.preset is None or any("=" not in o for o in args.override)):
+        parser.error("--override KEY=VALUE needs --preset (a fresh diffuser)")
     device = torch.device(args.device or ("cuda" if torch.cuda.is_available() else "cpu"))
     run = args.run_dir
     cfg, trajs, returns = load_run(run, with_returns=True)
@@ -145,7 +157,9 @@ def main() -> None:
         lr = float(cfg.diffuser.lr or train["lr"])
         clip = train.get("grad_clip") if cfg.diffuser.grad_clip == "preset" else cfg.diffuser.grad_clip
 
-    work = args.work_dir or run / ("conditioning_bench" + (f"_{args.preset}" if args.preset else ""))
+    work = args.work_dir or run / ("conditioning_bench" + ("_copy" if args.pairs == "copy" else "")
+                                   + (f"_{args.preset}" if args.preset else "")
+                                   + "".join(f"_{o.replace('=', '-')}" for o in args.override))
     work.mkdir(parents=True, exist_ok=True)
     ckpt = work / "diffuser_last.pt"
     blocks = torch.load(run / "checkpoints" / "blocks.pt", weights_only=True)
@@ -154,13 +168,22 @@ def main() -> None:
     if ckpt.exists():
         diffuser = load_diffuser(ckpt)
     elif args.preset is not None:
+        overrides = {k: yaml.safe_load(v) for k, v in (o.split("=", 1) for o in args.override)}
         diffuser = make_diffuser(args.preset, obs_dim=trajs["observation"].shape[-1],
-                                 action_dim=trajs["action"].shape[-1], horizon=trajs.batch_size[1], data=trajs)
+                                 action_dim=trajs["action"].shape[-1], horizon=trajs.batch_size[1], data=trajs,
+                                 **overrides)
     else:  # never touch the run's own checkpoint
         shutil.copy2(run / "checkpoints" / "diffuser" / "diffuser_last.pt", ckpt)
         diffuser = load_diffuser(ckpt)
     diffuser.to(device)
-    buffer = make_block_pair_buffer(trajs, ids, batch_size=batch_size, seed=int(cfg.seed))
+    if args.pairs == "copy":
+        copy_gen = torch.Generator().manual_seed(int(cfg.seed))
+
+        def buffer() -> TensorDict:  # a fresh draw after a resume: a diagnostic, not a training recipe
+            picked = trajs[torch.randint(0, trajs.batch_size[0], (batch_size,), generator=copy_gen)]
+            return TensorDict({"condition": picked, "target": picked}, batch_size=[batch_size])
+    else:
+        buffer = make_block_pair_buffer(trajs, ids, batch_size=batch_size, seed=int(cfg.seed))
     tag = f"-{args.tag}" if args.tag else ""
     out = ROOT / "bench" / "results" / "diffuser_conditioning" / f"{name}-{run.name}{tag}.json"
     record = {**run_record(config={**vars(args), "run_dir": str(run), "sampler": sampler,

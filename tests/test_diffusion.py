@@ -394,6 +394,31 @@ def test_global_condition_path_pools_valid_steps_and_loads_legacy(data, tmp_path
     assert not load_diffuser(path).backbone.global_condition
 
 
+def test_concat_condition_path_is_local_masked_and_loads_legacy(data, tmp_path):
+    torch.manual_seed(0)
+    net = TemporalUnet(4, hidden_dim=8, dim_mults=(1, 2), cond_dim=8, num_heads=2, concat_condition=True).eval()
+    _bypass_attention(net)  # the concat path alone
+    x, t = torch.randn(2, 6, 4), torch.tensor([10, 500])
+    cond, mask = torch.randn(2, 6, 8), torch.tensor([[True] * 4 + [False] * 2] * 2)
+    padded = cond.clone()
+    padded[:, 4:] = 100.0  # padded condition steps are zeroed before they enter
+    assert torch.allclose(net(x, t, cond, mask), net(x, t, padded, mask), atol=1e-5)
+    assert not torch.allclose(net(x, t, cond, mask), net(x, t, cond + 1.0, mask), atol=1e-4)
+    with pytest.raises(ValueError, match="horizon"):
+        net(x, t, cond[:, :5], mask[:, :5])
+    # through the diffuser: training, guided sampling (null condition) and the recorded option
+    diff = make_diffuser("tiny", obs_dim=3, action_dim=2, horizon=H, concat_condition=True).fit_normalizer(data)
+    assert diff.config["concat_condition"] is True and diff.backbone.concat_condition
+    train_diffuser(diff, lambda: _pairs(data, torch.arange(8), torch.arange(8, 16)), steps=2, progress=False)
+    assert diff.generate(data[:3], sampler="ddim", steps=3)["observation"].shape == (3, H, 3)
+    legacy = _diffuser(data)
+    path = save_diffuser(legacy, tmp_path / "legacy.pt")
+    ckpt = torch.load(path, weights_only=True)
+    ckpt["config"].pop("concat_condition")
+    torch.save(ckpt, path)
+    assert not load_diffuser(path).backbone.concat_condition
+
+
 class _Skip(torch.nn.Module):
     def forward(self, h, *_):
         return h

@@ -104,7 +104,8 @@ def load_diffuser(
         from torchrl_ftb.diffusion.presets import make_diffuser
 
         cfg = dict(cfg)
-        cfg.setdefault("global_condition", False)  # checkpoints from before the option had none
+        cfg.setdefault("global_condition", False)  # checkpoints from before the options had none
+        cfg.setdefault("concat_condition", False)
         diffuser = make_diffuser(cfg.pop("preset"), **cfg)
     _load_state(diffuser, ckpt, path)
     return diffuser.to(map_location) if map_location is not None else diffuser

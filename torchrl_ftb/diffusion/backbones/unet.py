@@ -20,6 +20,12 @@ property; with attention alone our CPU-sized model learned to ignore the conditi
 score, length and return uncorrelated with the condition's, guidance 1.2 vs 3 alike:
 ``bench/results/flow_diagnostics``). The null condition's pooled vector is its learned token.
 
+``concat_condition=True`` adds a third, local path (SR3 / Palette-style image-to-image
+conditioning): the encoded condition, zeroed on its padded steps, and its validity mask are
+concatenated to ``x_t`` as extra input channels, step by step. It needs a condition of the
+sample's horizon (FTB's pairs and flow have it). The null condition is then the learned token
+at step 0 with a mask that is True there only.
+
 Example:
     >>> import torch
     >>> net = TemporalUnet(transition_dim=6, hidden_dim=16, dim_mults=(1, 2, 4), cond_dim=16)
@@ -152,6 +158,8 @@ class TemporalUnet(DenoiserBackbone):
         dropout: dropout inside residual blocks (paper: 0.2).
         global_condition: also add an MLP of the condition's masked mean embedding to the
             timestep embedding of every block (see module docstring).
+        concat_condition: also concatenate the encoded condition and its mask to the input,
+            step by step (see module docstring).
     """
 
     def __init__(
@@ -166,6 +174,7 @@ class TemporalUnet(DenoiserBackbone):
         kernel_size: int = 5,
         dropout: float = 0.0,
         global_condition: bool = False,
+        concat_condition: bool = False,
     ) -> None:
         super().__init__(transition_dim, cond_dim)
         levels = len(dim_mults)
@@ -192,7 +201,9 @@ class TemporalUnet(DenoiserBackbone):
                 return _NoAttention()
             return ConditionCrossAttention(channels, cond_dim, num_heads=num_heads, factor=factor)
 
-        self.input_proj = nn.Conv1d(transition_dim, hidden_dim, 1)
+        self.concat_condition = bool(concat_condition) and cond_dim is not None
+        extra = cond_dim + 1 if self.concat_condition else 0  # condition channels + its mask
+        self.input_proj = nn.Conv1d(transition_dim + extra, hidden_dim, 1)
         self.downs = nn.ModuleList()
         in_dim = hidden_dim
         for i, out_dim in enumerate(dims):
@@ -239,6 +250,13 @@ class TemporalUnet(DenoiserBackbone):
         t_emb = self.time_embedding(t.expand(x.shape[0]) if t.ndim == 0 else t)
         if self.global_condition and cond_emb is not None:
             t_emb = t_emb + self.condition_mlp(_masked_mean(cond_emb, cond_mask)).to(t_emb.dtype)
+        if self.concat_condition and cond_emb is not None:
+            if cond_emb.shape[1] != horizon or cond_mask is None:
+                raise ValueError(f"TemporalUnet(concat_condition=True): needs a condition mask and a condition of "
+                                 f"the sample's horizon {horizon}, got {cond_emb.shape[1]}")
+            valid = cond_mask.to(cond_emb.dtype)[..., None]
+            extra = torch.cat([cond_emb * valid, valid], -1).transpose(1, 2).to(h.dtype)
+            h = torch.cat([h, F.pad(extra, (0, padded - horizon))], 1)
         h = self.input_proj(h)
         skips = []
         for res1, attn, res2, down in self.downs:
