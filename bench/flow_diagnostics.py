@@ -142,7 +142,7 @@ def main() -> None:
     parser.add_argument("--guidance", type=float, default=None, help="default: the run's")
     parser.add_argument("--seed", type=int, default=None, help="default: the run's seed")
     parser.add_argument("--strength", type=float, default=None,
-                        help="SDEdit strength in (0, 1] (DiffusionSampler(strength=...)); default: the run's")
+                        help="SDEdit strength in (0, 1] (DiffusionSampler(strength=...)); default 1: from noise, the paper")
     args = parse_run_args(parser, summarize)
     if args is None:
         return
@@ -154,7 +154,7 @@ def main() -> None:
     model = load_score_model(run / "checkpoints" / "score_model.pt")
     diffuser = load_diffuser(run / "checkpoints" / "diffuser" / "diffuser_last.pt")
     seed = int(cfg.seed if args.seed is None else args.seed)
-    strength = float(args.strength if args.strength is not None else f.get("strength", 1.0))
+    strength = 1.0 if args.strength is None else float(args.strength)
     # the recipe's sampler: a seeded generator, so this is the run's first flow step
     sampler = DiffusionSampler(diffuser, sampler=sampler_name, steps=int(steps), guidance=float(guidance),
                                generator=torch.Generator().manual_seed(seed), strength=strength)

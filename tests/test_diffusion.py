@@ -205,6 +205,8 @@ def test_strength_one_ignores_init_and_bad_strength_raises(data):
         DiffusionSampler(d, strength=0.0)
     with pytest.raises(ValueError, match="init"):
         d.generate(data[:3], sampler="ddim", steps=4, init=data[:2], strength=0.5, use_ema=False)
+    with pytest.raises(ValueError, match="init"):
+        d.generate(data[:3], sampler="ddim", steps=4, strength=0.5, use_ema=False)
 
 
 @pytest.mark.parametrize("sampler", ["ddim", "dpm++", "ddpm"])
@@ -370,6 +372,16 @@ def test_static_dims_are_not_diffused_and_restored(data, tmp_path):
         d.fit_normalizer(varying)
 
 
+def _load_without_option(data, tmp_path, option: str):
+    """Save a default diffuser, drop ``option`` from its checkpoint's config (a checkpoint
+    written before the option existed) and load it back."""
+    path = save_diffuser(_diffuser(data), tmp_path / "legacy.pt")
+    ckpt = torch.load(path, weights_only=True)
+    ckpt["config"].pop(option)
+    torch.save(ckpt, path)
+    return load_diffuser(path)
+
+
 def test_global_condition_path_pools_valid_steps_and_loads_legacy(data, tmp_path):
     torch.manual_seed(0)
     net = TemporalUnet(4, hidden_dim=8, dim_mults=(1, 2), cond_dim=8, num_heads=2, global_condition=True).eval()
@@ -386,12 +398,7 @@ def test_global_condition_path_pools_valid_steps_and_loads_legacy(data, tmp_path
     # make_diffuser records the option; a checkpoint from before it existed loads without it
     diff = make_diffuser("tiny", obs_dim=3, action_dim=2, horizon=H, global_condition=True).fit_normalizer(data)
     assert diff.config["global_condition"] is True and diff.backbone.global_condition
-    legacy = _diffuser(data)
-    path = save_diffuser(legacy, tmp_path / "legacy.pt")
-    ckpt = torch.load(path, weights_only=True)
-    ckpt["config"].pop("global_condition")
-    torch.save(ckpt, path)
-    assert not load_diffuser(path).backbone.global_condition
+    assert not getattr(_load_without_option(data, tmp_path, "global_condition").backbone, "global_condition")
 
 
 def test_concat_condition_path_is_local_masked_and_loads_legacy(data, tmp_path):
@@ -411,12 +418,7 @@ def test_concat_condition_path_is_local_masked_and_loads_legacy(data, tmp_path):
     assert diff.config["concat_condition"] is True and diff.backbone.concat_condition
     train_diffuser(diff, lambda: _pairs(data, torch.arange(8), torch.arange(8, 16)), steps=2, progress=False)
     assert diff.generate(data[:3], sampler="ddim", steps=3)["observation"].shape == (3, H, 3)
-    legacy = _diffuser(data)
-    path = save_diffuser(legacy, tmp_path / "legacy.pt")
-    ckpt = torch.load(path, weights_only=True)
-    ckpt["config"].pop("concat_condition")
-    torch.save(ckpt, path)
-    assert not load_diffuser(path).backbone.concat_condition
+    assert not getattr(_load_without_option(data, tmp_path, "concat_condition").backbone, "concat_condition")
 
 
 class _Skip(torch.nn.Module):

@@ -159,6 +159,8 @@ class DiffusionProcess:
         """
         if not 0.0 < float(strength) <= 1.0:
             raise ValueError(f"sample: strength must be in (0, 1], got {strength}")
+        if strength < 1.0 and x_init is None:
+            raise ValueError("sample: strength < 1 edits x_init; pass x_init")
         sched = self.make_scheduler(sampler, steps)
         x = randn_tensor(tuple(shape), generator=generator, device=torch.device(device or "cpu"),
                          dtype=torch.float32) * sched.init_noise_sigma
