@@ -434,9 +434,9 @@ class TrajectoryDiffuser(nn.Module):
                     return self.guided_eps(x_t, t, cond_emb, cond_mask, guidance=guidance, networks=nets)
 
             x_init = None
-            if strength < 1.0 and init is None:
-                raise ValueError("generate: strength < 1 edits a trajectory; pass init=")
-            if init is not None and strength < 1.0:
+            if strength < 1.0:
+                if init is None:
+                    raise ValueError("generate: strength < 1 edits a trajectory; pass init=")
                 if tuple(init.batch_size) != (num_samples, horizon) or "mask" not in init.keys():
                     raise ValueError(f"generate: 'init' must be a trajectory batch [{num_samples}, {horizon}] with "
                                      f"a 'mask', got {list(init.batch_size)}")

@@ -165,7 +165,7 @@ class DiffusionProcess:
         x = randn_tensor(tuple(shape), generator=generator, device=torch.device(device or "cpu"),
                          dtype=torch.float32) * sched.init_noise_sigma
         timesteps = sched.timesteps
-        if x_init is not None and strength < 1.0:
+        if strength < 1.0:  # x_init is given (checked above)
             if tuple(x_init.shape) != tuple(shape):
                 raise ValueError(f"sample: x_init has shape {list(x_init.shape)}, expected {list(shape)}")
             start = len(timesteps) - max(1, round(float(strength) * len(timesteps)))
