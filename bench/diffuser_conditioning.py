@@ -47,7 +47,9 @@ from flow_diagnostics import (  # noqa: E402
 
 from torchrl_ftb.diffusion import get_preset, load_diffuser, make_diffuser, train_diffuser  # noqa: E402
 from torchrl_ftb.envs import true_reward_fn  # noqa: E402
-from torchrl_ftb.preference import load_score_model, make_block_pair_buffer, score_trajectories  # noqa: E402
+from torchrl_ftb.preference import (  # noqa: E402
+    load_score_model, make_block_pair_buffer, score_trajectories, with_normalized_scores,
+)
 from torchrl_ftb.provenance import run_record, write_json  # noqa: E402
 
 
@@ -176,6 +178,8 @@ def main() -> None:
         shutil.copy2(run / "checkpoints" / "diffuser" / "diffuser_last.pt", ckpt)
         diffuser = load_diffuser(ckpt)
     diffuser.to(device)
+    if diffuser.score_condition:  # conditions (evaluation, copy pairs) carry their normalised score
+        trajs = with_normalized_scores(trajs, scores)
     if args.pairs == "copy":
         copy_gen = torch.Generator().manual_seed(int(cfg.seed))
 
@@ -183,7 +187,8 @@ def main() -> None:
             picked = trajs[torch.randint(0, trajs.batch_size[0], (batch_size,), generator=copy_gen)]
             return TensorDict({"condition": picked, "target": picked}, batch_size=[batch_size])
     else:
-        buffer = make_block_pair_buffer(trajs, ids, batch_size=batch_size, seed=int(cfg.seed))
+        buffer = make_block_pair_buffer(trajs, ids, batch_size=batch_size, seed=int(cfg.seed),
+                                        scores=scores if diffuser.score_condition else None)
     tag = f"-{args.tag}" if args.tag else ""
     out = ROOT / "bench" / "results" / "diffuser_conditioning" / f"{name}-{run.name}{tag}.json"
     record = {**run_record(config={**vars(args), "run_dir": str(run), "sampler": sampler,

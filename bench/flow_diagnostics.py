@@ -166,7 +166,7 @@ def main() -> None:
     flow = FlowToBetter(sampler, model, top_k=int(f.top_k), flow_steps=1, batch_size=int(f.batch_size),
                         progress=False)
     t0 = time.time()
-    samples = flow.generate(cond)
+    samples = flow.generate(cond, normalized_scores(scores[top], s_min, s_max))  # read if score_condition
     sample_seconds = time.time() - t0
     new_scores = score_trajectories(model, samples).double()
     min_length = default_min_length(cond) if f.min_length is None else int(f.min_length)

@@ -262,7 +262,7 @@ def make_sampler(cfg, diffuser) -> DiffusionSampler:
                             generator=generator, autocast_bf16=bool(cfg.diffuser.autocast_bf16))
 
 
-def stage_diffuser(cfg, run: RunDir, trajs, block_ids, obs_dim, act_dim, device, logger):
+def stage_diffuser(cfg, run: RunDir, trajs, scores, block_ids, obs_dim, act_dim, device, logger):
     d = cfg.diffuser
     horizon = int(trajs.batch_size[1])
     overrides = {} if d.overrides is None else OmegaConf.to_container(d.overrides, resolve=True)
@@ -280,7 +280,9 @@ def stage_diffuser(cfg, run: RunDir, trajs, block_ids, obs_dim, act_dim, device,
     if run.done("diffuser"):
         return load_diffuser(path, diffuser=diffuser, map_location=device), run.stages["diffuser"]
     s = diffuser_settings(cfg)
-    buffer = make_block_pair_buffer(trajs, block_ids, batch_size=s["batch_size"], seed=int(cfg.seed))
+    # a score_condition diffuser also reads each condition's dataset-normalised score
+    buffer = make_block_pair_buffer(trajs, block_ids, batch_size=s["batch_size"], seed=int(cfg.seed),
+                                    scores=scores if diffuser.score_condition else None)
     out = train_diffuser(
         diffuser, buffer, steps=s["steps"], lr=s["lr"], grad_clip=s["grad_clip"], logger=logger,
         checkpoint_dir=ckpt_dir, checkpoint_every=int(d.checkpoint_every), resume=run.resume,
@@ -474,7 +476,7 @@ def run(cfg: DictConfig) -> dict:
 
     # 5. diffuser -----------------------------------------------------------------------
     t0 = time.perf_counter()
-    diffuser, diffuser_summary = stage_diffuser(cfg, run_dir, trajs, block_ids, obs_dim, act_dim, device, logger)
+    diffuser, diffuser_summary = stage_diffuser(cfg, run_dir, trajs, scores, block_ids, obs_dim, act_dim, device, logger)
     timed("diffuser", t0)
 
     # 6. flow ---------------------------------------------------------------------------

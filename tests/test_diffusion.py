@@ -11,12 +11,14 @@ from torchrl_ftb.diffusion import (
     DiffusionSampler,
     TemporalUnet,
     TrajectoryDiffuser,
+    TrajectoryEncoder,
     TrajectoryNormalizer,
     load_diffuser,
     make_diffuser,
     save_diffuser,
     train_diffuser,
 )
+from torchrl_ftb.preference import NORMALIZED_SCORE_KEY, make_block_pair_buffer, with_normalized_scores
 from torchrl_ftb.testing import make_toy_dataset
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -420,6 +422,51 @@ def test_concat_condition_path_is_local_masked_and_loads_legacy(data, tmp_path):
     assert diff.generate(data[:3], sampler="ddim", steps=3)["observation"].shape == (3, H, 3)
     assert not getattr(_load_without_option(data, tmp_path, "concat_condition").backbone, "concat_condition")
 
+
+
+def test_score_condition_feeds_the_normalised_score_and_loads_legacy(data, tmp_path):
+    torch.manual_seed(0)
+    enc = TrajectoryEncoder(5, embed_dim=8, score_condition=True)
+    x, mask = torch.randn(2, 6, 5), torch.ones(2, 6, dtype=torch.bool)
+    a, _ = enc(x, mask, torch.tensor([0.0, 1.0]))
+    b, _ = enc(x, mask, torch.tensor([0.0, 0.5]))
+    assert torch.allclose(a[0], b[0]) and not torch.allclose(a[1], b[1])  # only the changed score moves
+    with pytest.raises(ValueError, match="score="):
+        enc(x, mask)
+    with pytest.raises(ValueError, match="score="):
+        TrajectoryEncoder(5, embed_dim=8)(x, mask, torch.zeros(2))
+    with pytest.raises(ValueError, match=r"score must be \[2\]"):
+        enc(x, mask, torch.zeros(3))
+    diff = make_diffuser("tiny", obs_dim=3, action_dim=2, horizon=H, score_condition=True).fit_normalizer(data)
+    assert diff.config["score_condition"] is True and diff.score_condition
+    scored = with_normalized_scores(data, torch.arange(data.batch_size[0], dtype=torch.float32))
+    loss = DiffusionLoss(diff)
+    assert ("condition", NORMALIZED_SCORE_KEY) in loss.in_keys
+    assert ("condition", NORMALIZED_SCORE_KEY) in DiffusionSampler(diff, steps=2).in_keys
+    train_diffuser(diff, lambda: _pairs(scored, torch.arange(8), torch.arange(8, 16)), steps=2, progress=False)
+    gen = dict(sampler="ddim", steps=3, generator=torch.Generator().manual_seed(0))
+    lo = diff.generate(scored[:3], **gen)
+    hi = scored[:3].clone()
+    hi[NORMALIZED_SCORE_KEY] = torch.ones_like(hi[NORMALIZED_SCORE_KEY])
+    gen["generator"] = torch.Generator().manual_seed(0)
+    assert not torch.allclose(lo["observation"], diff.generate(hi, **gen)["observation"])  # same noise, new score
+    with pytest.raises(ValueError, match="missing 'normalized_score'"):
+        diff.generate(data[:3], sampler="ddim", steps=2)
+    with pytest.raises(ValueError, match="missing 'normalized_score'"):
+        loss(_pairs(data, torch.arange(4), torch.arange(4, 8)))
+    bad = scored[:3].clone()
+    bad[NORMALIZED_SCORE_KEY][0] = float("nan")
+    with pytest.raises(ValueError, match="non-finite"):
+        diff.generate(bad, sampler="ddim", steps=2)
+    assert not _load_without_option(data, tmp_path, "score_condition").score_condition
+    # the block pair buffer hands both sides their normalised score (min -> 0, max -> 1)
+    rb = make_block_pair_buffer(data, torch.arange(data.batch_size[0]) % 3, batch_size=6, seed=0,
+                                scores=torch.arange(data.batch_size[0], dtype=torch.float32))
+    batch = rb.sample()
+    idx = batch["index"]
+    expected = idx.float() / (data.batch_size[0] - 1)
+    assert torch.allclose(batch["condition", NORMALIZED_SCORE_KEY][:, 0], expected[:, 0])
+    assert torch.allclose(batch["target", NORMALIZED_SCORE_KEY][:, 0], expected[:, 1])
 
 class _Skip(torch.nn.Module):
     def forward(self, h, *_):

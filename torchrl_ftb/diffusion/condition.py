@@ -6,6 +6,16 @@ code). Padded condition steps are zeroed at the input and excluded from attentio
 the returned key-padding mask (``True`` = valid). The *null* condition used for
 classifier-free guidance is one learned token: ``[B, 1, d_tau]`` with mask ``[B, 1]`` True.
 
+``score_condition=True`` adds the condition's own score as a feature: an MLP of its
+dataset-normalised score ``ŝ(tau_0)`` (the flow filter's scale, dataset in [0, 1]) is added to
+every step's embedding, so it reaches every condition path of the backbone (cross-attention
+values, the pooled global vector, the concatenated input). ``ŝ`` is a function of ``tau_0``
+through the frozen score model, so the diffuser still models ``p(tau_1 | tau_0)`` (Eq. 5);
+the feature hands the encoder the one global property FTB's pairs tie a target to (its
+condition's block), which a small convolutional encoder did not learn to compute from 500
+steps (BENCHMARKS, "Does the diffuser follow its condition?"). Decision Diffuser conditions
+on returns the same way. The null condition carries no score.
+
 Example:
     >>> import torch
     >>> enc = TrajectoryEncoder(5, embed_dim=16)
@@ -13,6 +23,9 @@ Example:
     >>> emb.shape, mask.shape
     (torch.Size([2, 9, 16]), torch.Size([2, 9]))
     >>> enc.null(2, 9)[0].shape
+    torch.Size([2, 9, 16])
+    >>> scored = TrajectoryEncoder(5, embed_dim=16, score_condition=True)
+    >>> scored(torch.randn(2, 9, 5), torch.ones(2, 9, dtype=torch.bool), score=torch.tensor([0.2, 0.9]))[0].shape
     torch.Size([2, 9, 16])
 """
 from __future__ import annotations
@@ -32,12 +45,17 @@ class TrajectoryEncoder(nn.Module):
         transition_dim: per-step size of the (normalised) condition.
         embed_dim: output size ``d_tau``.
         kernel_size: temporal kernel of both convolutions.
+        score_condition: also embed the condition's normalised score (``forward(score=)``).
     """
 
-    def __init__(self, transition_dim: int, *, embed_dim: int = 128, kernel_size: int = 5) -> None:
+    def __init__(self, transition_dim: int, *, embed_dim: int = 128, kernel_size: int = 5,
+                 score_condition: bool = False) -> None:
         super().__init__()
         self.transition_dim = int(transition_dim)
         self.embed_dim = int(embed_dim)
+        self.score_condition = bool(score_condition)
+        if self.score_condition:
+            self.score_mlp = nn.Sequential(nn.Linear(1, embed_dim), nn.Mish(), nn.Linear(embed_dim, embed_dim))
         groups = math.gcd(8, self.embed_dim)
         self.net = nn.Sequential(
             nn.Conv1d(transition_dim, embed_dim, kernel_size, padding=kernel_size // 2),
@@ -49,13 +67,26 @@ class TrajectoryEncoder(nn.Module):
         )
         self.null_embedding = nn.Parameter(torch.randn(embed_dim) * 0.02)
 
-    def forward(self, x: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Encode ``x [B, Hc, D]`` (padded steps are zeroed here); returns ``(emb, mask)``."""
+    def forward(self, x: torch.Tensor, mask: torch.Tensor,
+                score: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Encode ``x [B, Hc, D]`` (padded steps are zeroed here); returns ``(emb, mask)``.
+
+        ``score [B]`` (the normalised condition score) is required with ``score_condition``
+        and must be ``None`` without it.
+        """
         if x.ndim != 3 or x.shape[-1] != self.transition_dim:
             raise ValueError(f"TrajectoryEncoder: condition must be [B, Hc, {self.transition_dim}], got {list(x.shape)}")
+        if self.score_condition != (score is not None):
+            raise ValueError("TrajectoryEncoder: pass score= exactly when built with score_condition=True "
+                             f"(score_condition={self.score_condition})")
         mask = mask.bool()
         x = x * mask[..., None].to(x.dtype)
-        return self.net(x.transpose(1, 2)).transpose(1, 2), mask
+        emb = self.net(x.transpose(1, 2)).transpose(1, 2)
+        if score is not None:
+            if score.shape != x.shape[:1]:
+                raise ValueError(f"TrajectoryEncoder: score must be [{x.shape[0]}], got {list(score.shape)}")
+            emb = emb + self.score_mlp(score[:, None].to(emb.dtype))[:, None, :]
+        return emb, mask
 
     def null(self, batch: int, length: int) -> tuple[torch.Tensor, torch.Tensor]:
         """The null condition shaped like an encoded one: token at step 0, the rest masked out."""

@@ -26,6 +26,7 @@ from tensordict.utils import NestedKey
 from torchrl.objectives import LossModule
 
 from torchrl_ftb.diffusion.model import TrajectoryDiffuser
+from torchrl_ftb.preference.score import NORMALIZED_SCORE_KEY
 
 __all__ = ["DiffusionLoss"]
 
@@ -35,7 +36,8 @@ class DiffusionLoss(LossModule):
 
     Consumes pair batches from the block pair sampler: a TensorDict ``[B]`` with sub-tds
     ``"condition"`` and ``"target"`` ``[B, H]`` (``observation``, ``action``, ``mask`` and
-    ``("next", "reward")`` when the model diffuses rewards). Also reports (detached, not
+    ``("next", "reward")`` when the model diffuses rewards; the condition's
+    ``"normalized_score"`` with ``score_condition``). Also reports (detached, not
     ``loss_``-prefixed) ``"diffusion_mse_data"`` and ``"diffusion_mse_validity"``.
 
     Args:
@@ -77,7 +79,10 @@ class DiffusionLoss(LossModule):
         k = self.tensor_keys
         inner = [k.observation, k.action, k.mask] + ([k.reward] if self.diffuser.reward_channel else [])
         subs = [k.target] if self.diffuser.unconditional else [k.condition, k.target]
-        return [(*_as_tuple(s), *_as_tuple(i)) for s in subs for i in inner]
+        keys = [(*_as_tuple(s), *_as_tuple(i)) for s in subs for i in inner]
+        if self.diffuser.score_condition:
+            keys.append((*_as_tuple(k.condition), NORMALIZED_SCORE_KEY))
+        return keys
 
     def _unpack(self, td: TensorDictBase, which: str) -> tuple[torch.Tensor, torch.Tensor]:
         k = self.tensor_keys
@@ -105,8 +110,9 @@ class DiffusionLoss(LossModule):
         cond_emb = cond_mask = None
         if not d.unconditional:
             craw, cmask = self._unpack(tensordict, "condition")
+            score = d.condition_score(tensordict.get(self.tensor_keys.condition), name="DiffusionLoss['condition']")
             drop = torch.rand(batch, device=x0.device) < d.cond_drop_prob
-            cond_emb, cond_mask = d.encode_condition(d.condition_input(craw, cmask), cmask, drop=drop)
+            cond_emb, cond_mask = d.encode_condition(d.condition_input(craw, cmask), cmask, score=score, drop=drop)
         eps = d.backbone(x_t, t, cond_emb, cond_mask)
         err = (eps.float() - noise).pow(2)
         data_err = (err[..., :-1] * mask[..., None]).sum()

@@ -55,6 +55,7 @@ from torchrl_ftb.diffusion.backbones.base import DenoiserBackbone
 from torchrl_ftb.diffusion.condition import TrajectoryEncoder
 from torchrl_ftb.diffusion.normalizer import TrajectoryNormalizer
 from torchrl_ftb.diffusion.process import DiffusionProcess
+from torchrl_ftb.preference.score import NORMALIZED_SCORE_KEY
 
 __all__ = ["TrajectoryDiffuser", "REWARD_KEY"]
 
@@ -188,6 +189,30 @@ class TrajectoryDiffuser(nn.Module):
         return self.networks["backbone"]
 
     @property
+    def score_condition(self) -> bool:
+        """Whether conditions carry their normalised score (:data:`NORMALIZED_SCORE_KEY`) into the encoder."""
+        return self.encoder is not None and self.encoder.score_condition
+
+    def condition_score(self, condition: TensorDictBase, *, name: str = "condition") -> torch.Tensor | None:
+        """The ``[B]`` normalised scores of a condition batch ``[B, H]`` (``None`` unless
+        :attr:`score_condition`); per-step copies must agree on the valid steps."""
+        if not self.score_condition:
+            return None
+        value = condition.get(NORMALIZED_SCORE_KEY, None)
+        if value is None:
+            raise ValueError(f"{name}: missing {NORMALIZED_SCORE_KEY!r} (the condition's dataset-normalised score), required "
+                             "by this diffuser (score_condition=True)")
+        value = torch.as_tensor(value)
+        batch = condition.batch_size[0]
+        if value.shape == condition.batch_size:
+            value = value[:, 0]
+        if value.shape != (batch,):
+            raise ValueError(f"{name}: {NORMALIZED_SCORE_KEY!r} must be [{batch}] or [{batch}, H], got {list(value.shape)}")
+        if not bool(torch.isfinite(value).all()):
+            raise ValueError(f"{name}: {NORMALIZED_SCORE_KEY!r} has non-finite values")
+        return value.float()
+
+    @property
     def encoder(self) -> TrajectoryEncoder | None:
         return self.networks["encoder"] if "encoder" in self.networks else None
 
@@ -314,11 +339,13 @@ class TrajectoryDiffuser(nn.Module):
         return torch.cat([self._diffused(low), -one]), torch.cat([self._diffused(high), one])
 
     # ------------------------------------------------------------------ networks
-    def encode_condition(self, cond: torch.Tensor, cond_mask: torch.Tensor, *, drop: torch.Tensor | None = None,
+    def encode_condition(self, cond: torch.Tensor, cond_mask: torch.Tensor, *, score: torch.Tensor | None = None,
+                         drop: torch.Tensor | None = None,
                          networks: nn.ModuleDict | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """Encode a normalised condition; ``drop [B]`` True -> null condition."""
+        """Encode a normalised condition (``score [B]``: its normalised score, with
+        :attr:`score_condition`); ``drop [B]`` True -> null condition."""
         enc = (networks or self.networks)["encoder"]
-        emb, mask = enc(cond, cond_mask)
+        emb, mask = enc(cond, cond_mask, score)
         if drop is not None:
             emb, mask = enc.drop(emb, mask, drop)
         return emb, mask
@@ -383,7 +410,8 @@ class TrajectoryDiffuser(nn.Module):
 
         Args:
             condition: trajectory batch ``[B, Hc]`` (observation, action, mask, reward if
-                modelled); required unless the model is unconditional.
+                modelled, :data:`NORMALIZED_SCORE_KEY` with ``score_condition``); required unless the
+                model is unconditional.
             num_samples: number of samples for an unconditional model.
             horizon: generated horizon (default: the condition's, else ``self.horizon``).
             sampler: ``"ddpm"``, ``"ddim"`` or ``"dpm++"``.
@@ -422,8 +450,9 @@ class TrajectoryDiffuser(nn.Module):
                 condition = condition.to(device)
                 cmask = condition.get("mask").bool()
                 cond = self.condition_input(self.raw_data_from_td(condition, name="condition"), cmask)
+                score = self.condition_score(condition)
                 with ctx:
-                    cond_emb, cond_mask = self.encode_condition(cond, cmask, networks=nets)
+                    cond_emb, cond_mask = self.encode_condition(cond, cmask, score=score, networks=nets)
                 num_samples = condition.batch_size[0]
                 horizon = horizon or condition.batch_size[1]
             if horizon is None:

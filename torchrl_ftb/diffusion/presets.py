@@ -25,6 +25,9 @@ Presets differ only in numbers:
   ``concat_condition=True`` (the condition concatenated to the input, SR3-style) is available:
   on a copy task (target = condition) it makes the condition reach the samples where
   cross-attention alone does not (BENCHMARKS, "A copy task").
+  ``score_condition=True`` hands the encoder the condition's normalised score ``ŝ(tau_0)``
+  (:class:`~torchrl_ftb.diffusion.TrajectoryEncoder`); conditions then need
+  :data:`~torchrl_ftb.preference.NORMALIZED_SCORE_KEY`.
   Why DDPM and not DPM-Solver++/DDIM by default: on the toy task a briefly trained model
   sampled with the deterministic solvers gave clearly worse trajectories (toy, 400 steps:
   block-0 conditions -> mean true return -3.0 with DPM++ 25 / DDIM 25 vs -1.4 with DDPM 50,
@@ -74,6 +77,7 @@ _MODEL_DEFAULTS = dict(
     dropout=0.0,
     global_condition=False,
     concat_condition=False,
+    score_condition=False,
     num_train_timesteps=1000,
     beta_schedule="squaredcos_cap_v2",
     cond_drop_prob=0.25,
@@ -230,7 +234,8 @@ def make_diffuser(
         concat_condition=cfg["concat_condition"],
     )
     encoder = None if unconditional else TrajectoryEncoder(diffused, embed_dim=cfg["cond_dim"],
-                                                           kernel_size=cfg["kernel_size"])
+                                                           kernel_size=cfg["kernel_size"],
+                                                           score_condition=cfg["score_condition"])
     diffuser = TrajectoryDiffuser(
         backbone,
         encoder,
@@ -253,5 +258,6 @@ def make_diffuser(
                        "unconditional": bool(unconditional), "static_dims": list(static_dims),
                        "lagged_dims": lagged_dims, "time_constant_dims": time_constant_dims,
                        "global_condition": bool(cfg["global_condition"]),
-                       "concat_condition": bool(cfg["concat_condition"]), **overrides}
+                       "concat_condition": bool(cfg["concat_condition"]),
+                       "score_condition": bool(cfg["score_condition"]), **overrides}
     return diffuser

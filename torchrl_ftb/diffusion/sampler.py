@@ -21,6 +21,7 @@ from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 
 from torchrl_ftb.diffusion.model import REWARD_KEY, TrajectoryDiffuser
+from torchrl_ftb.preference.score import NORMALIZED_SCORE_KEY
 from torchrl_ftb.diffusion.process import SAMPLERS
 
 __all__ = ["DiffusionSampler"]
@@ -91,7 +92,8 @@ class DiffusionSampler(TensorDictModuleBase):
         self.num_samples = num_samples
         self.progress = progress
         fields = ["observation", "action"] + ([REWARD_KEY] if diffuser.reward_channel else [])
-        self.in_keys = [] if diffuser.unconditional else [_join(condition_key, k) for k in [*fields, "mask"]]
+        cond_fields = [*fields, "mask"] + ([NORMALIZED_SCORE_KEY] if diffuser.score_condition else [])
+        self.in_keys = [] if diffuser.unconditional else [_join(condition_key, k) for k in cond_fields]
         self.out_keys = [_join(sample_key, k) for k in [*fields, "mask"]]
 
     def _generator(self) -> torch.Generator | None:

@@ -106,6 +106,7 @@ def load_diffuser(
         cfg = dict(cfg)
         cfg.setdefault("global_condition", False)  # checkpoints from before the options had none
         cfg.setdefault("concat_condition", False)
+        cfg.setdefault("score_condition", False)
         diffuser = make_diffuser(cfg.pop("preset"), **cfg)
     _load_state(diffuser, ckpt, path)
     return diffuser.to(map_location) if map_location is not None else diffuser

@@ -60,7 +60,7 @@ from tqdm.auto import tqdm
 
 from torchrl_ftb.data import trajectories_to_flat, validate_trajectories
 from torchrl_ftb.diffusion.normalizer import TrajectoryNormalizer
-from torchrl_ftb.preference import ScoreModel, make_blocks, score_trajectories
+from torchrl_ftb.preference import NORMALIZED_SCORE_KEY, ScoreModel, make_blocks, normalized_scores, score_trajectories
 
 __all__ = [
     "FlowToBetter", "FlowResult", "adaptive_flow_steps", "default_min_length", "improves", "masked_true_return",
@@ -69,26 +69,6 @@ __all__ = [
 
 TRAJ_KEYS = ("observation", "action", "mask")
 REWARD_KEY = ("next", "reward")
-
-
-def normalized_scores(
-    scores: torch.Tensor, s_min: float | torch.Tensor, s_max: float | torch.Tensor
-) -> torch.Tensor:
-    """``(s - s_min) / (s_max - s_min)``: the flow filter's score scale (dataset in [0, 1]).
-
-    ``s_min``/``s_max`` are floats or tensors broadcasting against ``scores`` (e.g. ``[C, 1]``
-    per ensemble member for ``[C, N]`` scores).
-
-    Example:
-        >>> normalized_scores(torch.tensor([-3.0, -2.0, -1.0]), -3.0, -1.0).tolist()
-        [0.0, 0.5, 1.0]
-    """
-    s_min = torch.as_tensor(s_min, dtype=scores.dtype)
-    span = torch.as_tensor(s_max, dtype=scores.dtype) - s_min
-    if not bool((torch.isfinite(span) & (span > 0)).all()):
-        raise ValueError(f"normalized_scores: need s_max > s_min (finite), got s_min={s_min.tolist()}, "
-                         f"s_max={torch.as_tensor(s_max).tolist()}")
-    return (scores - s_min) / span
 
 
 def improves(new_hat: torch.Tensor, old_hat: torch.Tensor, threshold: float) -> torch.Tensor:
@@ -341,9 +321,17 @@ class FlowToBetter(nn.Module):
         return mean, mean[None]
 
     @torch.no_grad()
-    def generate(self, conditions: TensorDictBase) -> TensorDict:
-        """One flow step's samples ``[N, H]`` conditioned on ``conditions`` (chunked)."""
+    def generate(self, conditions: TensorDictBase, normalized: torch.Tensor | None = None) -> TensorDict:
+        """One flow step's samples ``[N, H]`` conditioned on ``conditions`` (chunked).
+
+        ``normalized [N]``, the conditions' normalised scores ``ŝ``, is passed along as
+        :data:`~torchrl_ftb.preference.NORMALIZED_SCORE_KEY` (per step) for samplers that read it (a
+        diffuser with ``score_condition=True``).
+        """
         n = conditions.batch_size[0]
+        if normalized is not None:
+            conditions = conditions.clone(False)
+            conditions.set(NORMALIZED_SCORE_KEY, normalized.to(torch.float32)[:, None].expand(conditions.batch_size).clone())
         params = list(self.sampler.parameters()) if isinstance(self.sampler, nn.Module) else []
         device = params[0].device if params else conditions.device
         chunks = []
@@ -451,7 +439,7 @@ class FlowToBetter(nn.Module):
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(self.seed)
             for step in bar:
-                samples = self.generate(current)
+                samples = self.generate(current, normalized_scores(cur_scores, s_min, s_max))
                 new_scores, new_members = self._scores(samples)
                 validity = trajectory_validity(
                     samples, normalizer=normalizer, max_abs_z=self.max_abs_z, min_length=min_length,

@@ -21,16 +21,20 @@ from torchrl_ftb.preference.pairs import (
     make_trajectory_buffer,
 )
 from torchrl_ftb.preference.score import (
+    NORMALIZED_SCORE_KEY,
     REWARD_ACTIVATIONS,
     SCORE_MODEL_CHECKPOINT,
     ScoreModel,
     load_score_model,
+    normalized_scores,
     save_score_model,
     score_trajectories,
+    with_normalized_scores,
 )
 from torchrl_ftb.preference.train import split_labels, train_score_model
 
 __all__ = [
+    "NORMALIZED_SCORE_KEY",
     "REWARD_ACTIVATIONS",
     "BlockPairSampler",
     "BlockWarning",
@@ -51,6 +55,8 @@ __all__ = [
     "preference_metrics",
     "save_score_model",
     "score_trajectories",
+    "normalized_scores",
+    "with_normalized_scores",
     "split_labels",
     "train_score_model",
 ]

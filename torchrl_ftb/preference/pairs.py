@@ -39,6 +39,7 @@ from torchrl.data.replay_buffers.storages import Storage
 from torchrl.envs.transforms import Transform
 
 from torchrl_ftb.data.trajectories import validate_trajectories
+from torchrl_ftb.preference.score import NORMALIZED_SCORE_KEY, with_normalized_scores
 
 __all__ = [
     "BlockPairSampler",
@@ -194,6 +195,7 @@ def make_block_pair_buffer(
     batch_size: int,
     seed: int | None = None,
     keys: Sequence[NestedKey] | None = ("observation", "action", "mask"),
+    scores: torch.Tensor | None = None,
 ) -> TensorDictReplayBuffer:
     """Replay buffer over ``trajs`` whose ``sample()`` is an adjacent-block pair batch (Eq. 5).
 
@@ -206,9 +208,13 @@ def make_block_pair_buffer(
         seed: seeds the buffer's generator (``None``: global RNG).
         keys: entries kept in ``condition``/``target`` (``None``: all); e.g. add
             ``("next", "reward")`` when the reward is diffused too.
+        scores: ``[N]`` scores ``s_psi`` of ``trajs`` (the blocks'); when given, every pair also
+            carries each trajectory's dataset-normalised score under :data:`NORMALIZED_SCORE_KEY`
+            (:func:`with_normalized_scores`): what a ``score_condition`` diffuser reads. The flow
+            normalises with the same dataset minimum and maximum.
 
     Raises:
-        ValueError: malformed ``trajs``, ``block_ids`` of the wrong length, < 2 blocks.
+        ValueError: malformed ``trajs``, ``block_ids`` or ``scores`` of the wrong length, < 2 blocks.
     """
     validate_trajectories(trajs, name="make_block_pair_buffer: trajs")
     block_ids = torch.as_tensor(block_ids)
@@ -216,6 +222,9 @@ def make_block_pair_buffer(
         raise ValueError(
             f"make_block_pair_buffer: block_ids has shape {list(block_ids.shape)}, expected [{trajs.batch_size[0]}]"
         )
+    if scores is not None:
+        trajs = with_normalized_scores(trajs, scores)
+        keys = None if keys is None else [*keys, NORMALIZED_SCORE_KEY]
     return _pair_buffer(trajs, BlockPairSampler(block_ids), batch_size=batch_size, seed=seed, keys=keys)
 
 

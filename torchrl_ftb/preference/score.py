@@ -36,9 +36,13 @@ from torchrl.modules import MLP
 from torchrl_ftb.data.trajectories import atomic_torch_save, observation_statistics, read_checkpoint
 
 __all__ = [
-    "REWARD_ACTIVATIONS", "SCORE_MODEL_CHECKPOINT", "ScoreModel", "load_score_model", "save_score_model",
-    "score_trajectories",
+    "NORMALIZED_SCORE_KEY", "REWARD_ACTIVATIONS", "SCORE_MODEL_CHECKPOINT", "ScoreModel", "load_score_model",
+    "normalized_scores", "save_score_model", "score_trajectories", "with_normalized_scores",
 ]
+
+#: key of a trajectory's dataset-normalised score ``ŝ`` (:func:`normalized_scores`) in an ``[N, H]``
+#: batch, stored per step (constant in time); what a ``score_condition`` diffuser reads
+NORMALIZED_SCORE_KEY = "normalized_score"
 
 
 def _prefixed(prefix: NestedKey | Sequence, key: NestedKey) -> NestedKey:
@@ -454,3 +458,45 @@ def load_score_model(
         raise ValueError(f"{path}: score-model checkpoint (hparams {hparams}) does not fit the model "
                          f"(hparams {model.hparams}): {err}") from err
     return model
+
+
+def normalized_scores(
+    scores: torch.Tensor, s_min: float | torch.Tensor, s_max: float | torch.Tensor
+) -> torch.Tensor:
+    """``(s - s_min) / (s_max - s_min)``: the flow filter's score scale (dataset in [0, 1]).
+
+    ``s_min``/``s_max`` are floats or tensors broadcasting against ``scores`` (e.g. ``[C, 1]``
+    per ensemble member for ``[C, N]`` scores).
+
+    Example:
+        >>> normalized_scores(torch.tensor([-3.0, -2.0, -1.0]), -3.0, -1.0).tolist()
+        [0.0, 0.5, 1.0]
+    """
+    s_min = torch.as_tensor(s_min, dtype=scores.dtype)
+    span = torch.as_tensor(s_max, dtype=scores.dtype) - s_min
+    if not bool((torch.isfinite(span) & (span > 0)).all()):
+        raise ValueError(f"normalized_scores: need s_max > s_min (finite), got s_min={s_min.tolist()}, "
+                         f"s_max={torch.as_tensor(s_max).tolist()}")
+    return (scores - s_min) / span
+
+
+def with_normalized_scores(trajs: TensorDictBase, scores: torch.Tensor) -> TensorDictBase:
+    """A shallow copy of ``trajs [N, H]`` carrying :data:`NORMALIZED_SCORE_KEY`: each
+    trajectory's :func:`normalized_scores` over these ``scores [N]`` (min -> 0, max -> 1),
+    repeated over its steps.
+
+    Example:
+        >>> from torchrl_ftb.testing import make_toy_dataset
+        >>> trajs = with_normalized_scores(make_toy_dataset(num_trajectories=3, horizon=4, seed=0),
+        ...                                torch.tensor([2.0, 4.0, 3.0]))
+        >>> trajs[NORMALIZED_SCORE_KEY][:, 0].tolist()
+        [0.0, 1.0, 0.5]
+    """
+    scores = torch.as_tensor(scores).reshape(-1)
+    if scores.shape != trajs.batch_size[:1] or not bool(torch.isfinite(scores).all()):
+        raise ValueError(f"with_normalized_scores: scores must be finite [{trajs.batch_size[0]}], "
+                         f"got {list(scores.shape)}")
+    hat = normalized_scores(scores.double(), float(scores.min()), float(scores.max())).float()
+    out = trajs.clone(False)
+    out.set(NORMALIZED_SCORE_KEY, hat.to(trajs.device)[:, None].expand(trajs.batch_size[:2]).clone())
+    return out
