@@ -15,8 +15,11 @@ bottleneck ``make_diffuser`` warns about, and so test something else).
 
     python bench/diffuser_conditioning_toy.py --horizon 500 --steps 1500
     python bench/diffuser_conditioning_toy.py --horizon 500 --steps 1500 --distractor-dims 15
+    python bench/diffuser_conditioning_toy.py --distractor-dims 15 --override score_condition=true --tag score
 
-Writes ``bench/results/diffuser_conditioning/toy-H<h>-D<d>-<steps>.json`` (command, config,
+``--override score_condition=true`` hands the encoder each condition's normalised score (here the
+true return the blocks are cut from). 
+Writes ``bench/results/diffuser_conditioning/toy-H<h>-D<d>-<steps>[-<tag>].json`` (command, config,
 commit, machine, one row per evaluation).
 """
 from __future__ import annotations
@@ -28,12 +31,13 @@ import time
 from pathlib import Path
 
 import torch
+import yaml
 from scipy.stats import spearmanr
 from tensordict import TensorDict
 
 from torchrl_ftb.data.labels import true_return
 from torchrl_ftb.diffusion import DiffusionSampler, make_diffuser, run_settings, train_diffuser
-from torchrl_ftb.preference import make_block_pair_buffer, make_blocks
+from torchrl_ftb.preference import NORMALIZED_SCORE_KEY, make_block_pair_buffer, make_blocks, with_normalized_scores
 from torchrl_ftb.provenance import run_record, write_json
 from torchrl_ftb.testing import make_toy_dataset, toy_reward
 
@@ -54,7 +58,8 @@ def with_distractors(data: TensorDict, dims: int, *, seed: int) -> TensorDict:
 
 def sample_returns(diffuser, data, blocks, *, per_block: int, settings: dict, seed: int) -> dict:
     cond_idx = torch.cat([torch.nonzero(blocks == k).squeeze(-1)[:per_block] for k in range(int(blocks.max()))])
-    cond = data[cond_idx].select("observation", "action", "mask")
+    keys = ["observation", "action", "mask"] + ([NORMALIZED_SCORE_KEY] if diffuser.score_condition else [])
+    cond = data[cond_idx].select(*keys)
     sampler = DiffusionSampler(diffuser, sampler=settings["sampler"], steps=settings["sample_steps"],
                                guidance=settings["guidance"], seed=seed)
     smp = sampler(TensorDict({"condition": cond}, batch_size=[len(cond_idx)]))["sample"]
@@ -80,6 +85,9 @@ def main(argv=None) -> int:
     p.add_argument("--preset", default="cpu")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--override", nargs="*", default=[], metavar="KEY=VALUE",
+                   help="diffuser model fields, e.g. score_condition=true (the blocks' true returns are the scores)")
+    p.add_argument("--tag", default="", help="suffix of the results file")
     args = p.parse_args(argv)
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
@@ -88,11 +96,17 @@ def main(argv=None) -> int:
     returns = true_return(data)
     blocks = make_blocks(returns, args.num_blocks, seed=args.seed)
     settings = run_settings(args.preset)
-    buffer = make_block_pair_buffer(data, blocks, batch_size=settings["batch_size"], seed=args.seed)
     obs_dim = data["observation"].shape[-1]
-    diffuser = make_diffuser(args.preset, obs_dim=obs_dim, action_dim=2, horizon=args.horizon, data=data)
+    overrides = {k: yaml.safe_load(v) for k, v in (o.split("=", 1) for o in args.override)}
+    diffuser = make_diffuser(args.preset, obs_dim=obs_dim, action_dim=2, horizon=args.horizon, data=data,
+                             **overrides)
+    if diffuser.score_condition:  # blocks come from the true return here, so it is the score
+        data = with_normalized_scores(data, returns)
+    buffer = make_block_pair_buffer(data, blocks, batch_size=settings["batch_size"], seed=args.seed,
+                                    scores=returns if diffuser.score_condition else None)
+    tag = f"-{args.tag}" if args.tag else ""
     out = ROOT / "bench" / "results" / "diffuser_conditioning" / (
-        f"toy-H{args.horizon}-D{args.distractor_dims}-{args.steps}.json")
+        f"toy-H{args.horizon}-D{args.distractor_dims}-{args.steps}{tag}.json")
     record = {**run_record(config={**vars(args), "settings": settings, "diffuser_config": diffuser.config}),
               "block_return_mean": [float(returns[blocks == k].mean()) for k in range(int(blocks.max()) + 1)],
               "block_length_mean": [float(data["mask"][blocks == k].sum(-1).float().mean())

@@ -195,7 +195,8 @@ class TrajectoryDiffuser(nn.Module):
 
     def condition_score(self, condition: TensorDictBase, *, name: str = "condition") -> torch.Tensor | None:
         """The ``[B]`` normalised scores of a condition batch ``[B, H]`` (``None`` unless
-        :attr:`score_condition`); per-step copies must agree on the valid steps."""
+        :attr:`score_condition`): the entry itself when it is ``[B]``, its first step when it is
+        stored per step ``[B, H]`` (as :func:`~torchrl_ftb.preference.with_normalized_scores` does)."""
         if not self.score_condition:
             return None
         value = condition.get(NORMALIZED_SCORE_KEY, None)
