@@ -22,16 +22,21 @@ def _true_return(td: TensorDict) -> torch.Tensor:
     return (toy_reward(td["observation"], td["action"]).squeeze(-1) * td["mask"]).sum(-1)
 
 
+def _toy_blocks() -> tuple[TensorDict, torch.Tensor, list[torch.Tensor]]:
+    """The noiseless toy dataset, its true returns and the members of its K true-return quantile blocks."""
+    data = make_toy_dataset(num_trajectories=N, horizon=H, seed=0, noise=0.0)
+    returns = _true_return(data)
+    edges = torch.quantile(returns, torch.linspace(0, 1, K + 1)[1:-1])
+    block = torch.bucketize(returns, edges)
+    return data, returns, [torch.nonzero(block == k).squeeze(-1) for k in range(K)]
+
+
 @pytest.fixture(scope="module")
 def trained():
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        data = make_toy_dataset(num_trajectories=N, horizon=H, seed=0, noise=0.0)
-        returns = _true_return(data)
-        edges = torch.quantile(returns, torch.linspace(0, 1, K + 1)[1:-1])
-        block = torch.bucketize(returns, edges)
-        members = [torch.nonzero(block == k).squeeze(-1) for k in range(K)]
+        data, _, members = _toy_blocks()
         g = torch.Generator().manual_seed(0)
 
         def pairs(batch: int = 32) -> TensorDict:
@@ -104,48 +109,40 @@ def test_samples_follow_their_condition(trained):
     assert gap > 0.25 * target_gap, (gap, target_gap)
 
 
+@pytest.mark.usefixtures("one_thread")
 def test_score_condition_carries_the_block_alone():
     """``score_condition=True``: with every condition the *same* trajectory, only its normalised
     score tells the block; samples must then follow the score (a top-score condition leads to
     higher-return samples than a bottom-score one), which no trajectory encoder could do here."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        data = make_toy_dataset(num_trajectories=N, horizon=H, seed=0, noise=0.0)
-        returns = _true_return(data)
-        edges = torch.quantile(returns, torch.linspace(0, 1, K + 1)[1:-1])
-        block = torch.bucketize(returns, edges)
-        members = [torch.nonzero(block == k).squeeze(-1) for k in range(K)]
-        blank = data[:1].select("observation", "action", "mask")
+    data, returns, members = _toy_blocks()
+    blank = data[:1].select("observation", "action", "mask")
 
-        def condition(score: torch.Tensor) -> TensorDict:
-            cond = blank.expand(score.numel(), H).clone()
-            cond.set(NORMALIZED_SCORE_KEY, score[:, None].expand(score.numel(), H).clone())
-            return cond
+    def condition(score: torch.Tensor) -> TensorDict:
+        cond = blank.expand(score.numel(), H).clone()
+        cond.set(NORMALIZED_SCORE_KEY, score[:, None].expand(score.numel(), H).clone())
+        return cond
 
-        g = torch.Generator().manual_seed(0)
+    g = torch.Generator().manual_seed(0)
 
-        def pairs(batch: int = 32) -> TensorDict:
-            k = torch.randint(0, K - 1, (batch,), generator=g)
-            target = torch.stack([members[int(i) + 1][torch.randint(len(members[int(i) + 1]), (1,), generator=g)[0]]
-                                  for i in k])
-            return TensorDict({"condition": condition(k / (K - 1)), "target": data[target].select(*blank.keys())},
-                              batch_size=[batch])
+    def pairs(batch: int = 32) -> TensorDict:
+        k = torch.randint(0, K - 1, (batch,), generator=g)
+        target = torch.stack([members[int(i) + 1][torch.randint(len(members[int(i) + 1]), (1,), generator=g)[0]]
+                              for i in k])
+        return TensorDict({"condition": condition(k / (K - 1)), "target": data[target].select(*blank.keys())},
+                          batch_size=[batch])
 
-        torch.manual_seed(0)
-        diffuser = make_diffuser("tiny", obs_dim=3, action_dim=2, horizon=H, score_condition=True,
-                                 global_condition=True).fit_normalizer(data)
-        train_diffuser(diffuser, pairs, steps=TRAIN_STEPS, lr=3e-3, grad_clip=1.0, progress=False)
+    torch.manual_seed(0)
+    diffuser = make_diffuser("tiny", obs_dim=3, action_dim=2, horizon=H, score_condition=True,
+                             global_condition=True).fit_normalizer(data)
+    train_diffuser(diffuser, pairs, steps=TRAIN_STEPS, lr=3e-3, grad_clip=1.0, progress=False)
 
-        def mean_return(score: float) -> float:
-            cond = condition(torch.full((48,), score))
-            s = DiffusionSampler(diffuser, sampler="ddpm", steps=50, seed=0)(
-                TensorDict({"condition": cond}, batch_size=[48]))["sample"]
-            return float(_true_return(s).mean())
+    def mean_return(score: float) -> float:
+        cond = condition(torch.full((48,), score))
+        s = DiffusionSampler(diffuser, sampler="ddpm", steps=50, seed=0)(
+            TensorDict({"condition": cond}, batch_size=[48]))["sample"]
+        return float(_true_return(s).mean())
 
-        gap = mean_return((K - 2) / (K - 1)) - mean_return(0.0)  # asks for block K-1 vs block 1
-        target_gap = float(returns[members[K - 1]].mean() - returns[members[1]].mean())
-        print(f"score-only condition gap {gap:.2f}, target gap {target_gap:.2f}")
-        assert gap > 0.5 * target_gap, (gap, target_gap)
-    finally:
-        torch.set_num_threads(threads)
+    gap = mean_return((K - 2) / (K - 1)) - mean_return(0.0)  # asks for block K-1 vs block 1
+    target_gap = float(returns[members[K - 1]].mean() - returns[members[1]].mean())
+    print(f"score-only condition gap {gap:.2f}, target gap {target_gap:.2f}")
+    assert gap > 0.5 * target_gap, (gap, target_gap)
