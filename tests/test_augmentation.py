@@ -143,6 +143,9 @@ def test_build_supplement_is_cached_and_checked(supplements):
     # a different setting never reuses the supplement: it lands in another directory
     changed = {**common, "flow": {**common["flow"], "threshold": 1.2}, "diffuser": {**common["diffuser"], "steps": 1}}
     assert build_supplement("ftb", data, **changed)[1]["path"] != info["path"]
+    # a score-conditioned diffuser gets each condition's normalised true return from the block pairs
+    scored = {**common, "diffuser": {**common["diffuser"], "steps": 2, "overrides": {"score_condition": True}}}
+    assert build_supplement("ftb", data, **scored)[1]["diffuser"]["step"] == 2
     Path(info["path"], "supplement.pt").write_bytes(b"not a checkpoint")
     with pytest.raises(ValueError, match="supplement"):
         build_supplement("ftb", data, **common)

@@ -345,7 +345,7 @@ def build_supplement(
     if kind == "ftb":
         block_ids = make_blocks(returns, int(num_blocks), seed=int(seed))
         buffer = make_block_pair_buffer(trajs, block_ids, batch_size=settings["batch_size"], seed=seed,
-                                       keys=GENERATED_KEYS)
+                                       keys=GENERATED_KEYS, scores=returns if model.score_condition else None)
     else:
         buffer = make_trajectory_buffer(trajs, batch_size=settings["batch_size"], seed=seed,
                                        keys=GENERATED_KEYS)
