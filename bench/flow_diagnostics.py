@@ -39,7 +39,9 @@ from torchrl_ftb.envs import metaworld_frame_stack_error, true_reward_fn  # noqa
 from torchrl_ftb.flow import (  # noqa: E402
     FlowToBetter, default_min_length, improves, masked_true_return, normalized_scores, trajectory_validity,
 )
-from torchrl_ftb.preference import correlations, load_score_model, score_trajectories  # noqa: E402
+from torchrl_ftb.preference import (  # noqa: E402
+    correlations, load_score_model, score_trajectories, with_normalized_scores,
+)
 from torchrl_ftb.provenance import run_record, write_json  # noqa: E402
 
 
@@ -166,7 +168,8 @@ def main() -> None:
     flow = FlowToBetter(sampler, model, top_k=int(f.top_k), flow_steps=1, batch_size=int(f.batch_size),
                         progress=False)
     t0 = time.time()
-    samples = flow.generate(cond, normalized_scores(scores[top], s_min, s_max))  # read if score_condition
+    # the conditions' normalised scores go along (read by a score_condition diffuser)
+    samples = flow.generate(with_normalized_scores(cond, scores[top], s_min=s_min, s_max=s_max))
     sample_seconds = time.time() - t0
     new_scores = score_trajectories(model, samples).double()
     min_length = default_min_length(cond) if f.min_length is None else int(f.min_length)

@@ -17,7 +17,7 @@ from torchrl_ftb.flow import (
     normalized_scores,
     trajectory_validity,
 )
-from torchrl_ftb.preference import ScoreModel
+from torchrl_ftb.preference import NORMALIZED_SCORE_KEY, ScoreModel
 from torchrl_ftb.testing import make_toy_dataset, toy_reward
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -233,3 +233,24 @@ def test_flow_with_trained_diffuser_and_score_model_improves_toy_trajectories():
     assert res.summary["true_return_mean_after"] > res.summary["true_return_mean_before"]
     gen_true = masked_true_return(res.generated, toy_reward)
     assert float(gen_true.mean()) > float(masked_true_return(res.original, toy_reward).mean())
+
+
+def test_flow_hands_the_sampler_each_conditions_normalised_score():
+    """Every flow step's conditions carry ŝ of the *current* trajectory on the dataset's scale
+    (what a ``score_condition`` diffuser reads), updated after each accepted sample."""
+    data = make_toy_dataset(num_trajectories=40, horizon=H, seed=0)
+    inner, seen = _shift_sampler(0.3), []
+
+    def record(cond):
+        seen.append((cond[NORMALIZED_SCORE_KEY][:, 0].clone(), _sum_ax(cond)))
+        return inner.module(cond)
+
+    flow = FlowToBetter(TensorDictModule(record, ["condition"], ["sample"]), _sum_ax, top_k=6, threshold=1.0,
+                        flow_steps=2, early_stop_fraction=0.0, progress=False)
+    scores = _sum_ax(data).double()
+    flow(data)
+    assert len(seen) == 2
+    for hat, raw in seen:
+        expected = normalized_scores(raw.double(), float(scores.min()), float(scores.max()))
+        assert torch.allclose(hat.double(), expected, atol=1e-5)
+    assert bool((seen[1][0] > seen[0][0]).any())  # accepted samples moved their conditions' ŝ up

@@ -60,7 +60,9 @@ from tqdm.auto import tqdm
 
 from torchrl_ftb.data import trajectories_to_flat, validate_trajectories
 from torchrl_ftb.diffusion.normalizer import TrajectoryNormalizer
-from torchrl_ftb.preference import NORMALIZED_SCORE_KEY, ScoreModel, make_blocks, normalized_scores, score_trajectories
+from torchrl_ftb.preference import (
+    ScoreModel, make_blocks, normalized_scores, score_trajectories, with_normalized_scores,
+)
 
 __all__ = [
     "FlowToBetter", "FlowResult", "adaptive_flow_steps", "default_min_length", "improves", "masked_true_return",
@@ -321,17 +323,9 @@ class FlowToBetter(nn.Module):
         return mean, mean[None]
 
     @torch.no_grad()
-    def generate(self, conditions: TensorDictBase, normalized: torch.Tensor | None = None) -> TensorDict:
-        """One flow step's samples ``[N, H]`` conditioned on ``conditions`` (chunked).
-
-        ``normalized [N]``, the conditions' normalised scores ``ŝ``, is passed along as
-        :data:`~torchrl_ftb.preference.NORMALIZED_SCORE_KEY` (per step) for samplers that read it (a
-        diffuser with ``score_condition=True``).
-        """
+    def generate(self, conditions: TensorDictBase) -> TensorDict:
+        """One flow step's samples ``[N, H]`` conditioned on ``conditions`` (chunked)."""
         n = conditions.batch_size[0]
-        if normalized is not None:
-            conditions = conditions.clone(False)
-            conditions.set(NORMALIZED_SCORE_KEY, normalized.to(torch.float32)[:, None].expand(conditions.batch_size).clone())
         params = list(self.sampler.parameters()) if isinstance(self.sampler, nn.Module) else []
         device = params[0].device if params else conditions.device
         chunks = []
@@ -439,7 +433,8 @@ class FlowToBetter(nn.Module):
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(self.seed)
             for step in bar:
-                samples = self.generate(current, normalized_scores(cur_scores, s_min, s_max))
+                # the conditions' normalised scores go along for samplers that read them (score_condition)
+                samples = self.generate(with_normalized_scores(current, cur_scores, s_min=s_min, s_max=s_max))
                 new_scores, new_members = self._scores(samples)
                 validity = trajectory_validity(
                     samples, normalizer=normalizer, max_abs_z=self.max_abs_z, min_length=min_length,

@@ -480,10 +480,13 @@ def normalized_scores(
     return (scores - s_min) / span
 
 
-def with_normalized_scores(trajs: TensorDictBase, scores: torch.Tensor) -> TensorDictBase:
+def with_normalized_scores(
+    trajs: TensorDictBase, scores: torch.Tensor, *, s_min: float | None = None, s_max: float | None = None
+) -> TensorDictBase:
     """A shallow copy of ``trajs [N, H]`` carrying :data:`NORMALIZED_SCORE_KEY`: each
-    trajectory's :func:`normalized_scores` over these ``scores [N]`` (min -> 0, max -> 1),
-    repeated over its steps.
+    trajectory's :func:`normalized_scores` (``scores [N]`` mapped by ``s_min -> 0``,
+    ``s_max -> 1``; by default these scores' own minimum and maximum, i.e. ``trajs`` is the
+    dataset), repeated over its steps.
 
     Example:
         >>> from torchrl_ftb.testing import make_toy_dataset
@@ -496,7 +499,9 @@ def with_normalized_scores(trajs: TensorDictBase, scores: torch.Tensor) -> Tenso
     if scores.shape != trajs.batch_size[:1] or not bool(torch.isfinite(scores).all()):
         raise ValueError(f"with_normalized_scores: scores must be finite [{trajs.batch_size[0]}], "
                          f"got {list(scores.shape)}")
-    hat = normalized_scores(scores.double(), float(scores.min()), float(scores.max())).float()
+    s_min = float(scores.min()) if s_min is None else s_min
+    s_max = float(scores.max()) if s_max is None else s_max
+    hat = normalized_scores(scores.double(), s_min, s_max).float()
     out = trajs.clone(False)
     out.set(NORMALIZED_SCORE_KEY, hat.to(trajs.device)[:, None].expand(trajs.batch_size[:2]).clone())
     return out
