@@ -34,7 +34,6 @@ import time
 from pathlib import Path
 
 import torch
-import yaml
 from tensordict import TensorDict
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -45,7 +44,9 @@ from flow_diagnostics import (  # noqa: E402
     load_run, parse_run_args, run_parser, sample_true_return, sampling_settings, spearman,
 )
 
-from torchrl_ftb.diffusion import get_preset, load_diffuser, make_diffuser, train_diffuser  # noqa: E402
+from torchrl_ftb.diffusion import (  # noqa: E402
+    get_preset, load_diffuser, make_diffuser, parse_overrides, train_diffuser,
+)
 from torchrl_ftb.envs import true_reward_fn  # noqa: E402
 from torchrl_ftb.preference import (  # noqa: E402
     load_score_model, make_block_pair_buffer, score_trajectories, with_normalized_scores,
@@ -141,8 +142,12 @@ def main() -> None:
         return
     if args.steps is None:
         parser.error("--steps is required with --run-dir")
-    if args.override and (args.preset is None or any("=" not in o for o in args.override)):
+    if args.override and args.preset is None:
         parser.error("--override KEY=VALUE needs --preset (a fresh diffuser)")
+    try:
+        overrides = parse_overrides(args.override)
+    except ValueError as err:
+        parser.error(f"--override: {err}")
     device = torch.device(args.device or ("cuda" if torch.cuda.is_available() else "cpu"))
     run = args.run_dir
     cfg, trajs, returns = load_run(run, with_returns=True)
@@ -170,7 +175,6 @@ def main() -> None:
     if ckpt.exists():
         diffuser = load_diffuser(ckpt)
     elif args.preset is not None:
-        overrides = {k: yaml.safe_load(v) for k, v in (o.split("=", 1) for o in args.override)}
         diffuser = make_diffuser(args.preset, obs_dim=trajs["observation"].shape[-1],
                                  action_dim=trajs["action"].shape[-1], horizon=trajs.batch_size[1], data=trajs,
                                  **overrides)

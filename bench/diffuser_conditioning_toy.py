@@ -31,12 +31,11 @@ import time
 from pathlib import Path
 
 import torch
-import yaml
 from scipy.stats import spearmanr
 from tensordict import TensorDict
 
 from torchrl_ftb.data.labels import true_return
-from torchrl_ftb.diffusion import DiffusionSampler, make_diffuser, run_settings, train_diffuser
+from torchrl_ftb.diffusion import DiffusionSampler, make_diffuser, parse_overrides, run_settings, train_diffuser
 from torchrl_ftb.preference import NORMALIZED_SCORE_KEY, make_block_pair_buffer, make_blocks, with_normalized_scores
 from torchrl_ftb.provenance import run_record, write_json
 from torchrl_ftb.testing import make_toy_dataset, toy_reward
@@ -89,6 +88,10 @@ def main(argv=None) -> int:
                    help="diffuser model fields, e.g. score_condition=true (the blocks' true returns are the scores)")
     p.add_argument("--tag", default="", help="suffix of the results file")
     args = p.parse_args(argv)
+    try:
+        overrides = parse_overrides(args.override)
+    except ValueError as err:
+        p.error(f"--override: {err}")
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
     data = with_distractors(make_toy_dataset(num_trajectories=args.num_trajectories, horizon=args.horizon,
@@ -97,7 +100,6 @@ def main(argv=None) -> int:
     blocks = make_blocks(returns, args.num_blocks, seed=args.seed)
     settings = run_settings(args.preset)
     obs_dim = data["observation"].shape[-1]
-    overrides = {k: yaml.safe_load(v) for k, v in (o.split("=", 1) for o in args.override)}
     diffuser = make_diffuser(args.preset, obs_dim=obs_dim, action_dim=2, horizon=args.horizon, data=data,
                              **overrides)
     if diffuser.score_condition:  # blocks come from the true return here, so it is the score

@@ -15,6 +15,7 @@ from torchrl_ftb.diffusion import (
     TrajectoryNormalizer,
     load_diffuser,
     make_diffuser,
+    parse_overrides,
     save_diffuser,
     train_diffuser,
 )
@@ -520,3 +521,12 @@ def test_observation_structure_lagged_and_time_constant_dims(data, tmp_path):
         make_diffuser("tiny", obs_dim=7, action_dim=2, horizon=H, lagged_dims=[(3, 0), (0, 1)])
     with pytest.raises(ValueError, match="observation dims"):
         make_diffuser("tiny", obs_dim=7, action_dim=2, horizon=H, lagged_dims=[(7, 0)])
+
+
+def test_parse_overrides_reads_yaml_values_and_rejects_bare_keys():
+    assert parse_overrides(["score_condition=true", "hidden_dim=16", "name=a=b"]) == {
+        "score_condition": True, "hidden_dim": 16, "name": "a=b"}
+    with pytest.raises(ValueError, match="KEY=VALUE.*'score_condition'"):
+        parse_overrides(["score_condition"])
+    with pytest.raises(ValueError, match="KEY=VALUE"):
+        parse_overrides(["=1"])

@@ -55,6 +55,7 @@ from torchrl_ftb.diffusion import DiffusionSampler, make_diffuser, run_settings,
 from torchrl_ftb.flow import (
     FlowResult,
     FlowToBetter,
+    clip_actions,
     default_min_length,
     masked_true_return,
     trajectory_validity,
@@ -235,8 +236,7 @@ def synthetic_supplement(
     samples.set("mask", samples.get("mask").bool())
     valid = trajectory_validity(samples, normalizer=normalizer, max_abs_z=max_abs_z, min_length=min_length,
                                 action_limit=action_limit, action_tolerance=action_tolerance)["valid"]
-    kept = samples[valid].clone()
-    kept.set("action", kept.get("action").clamp(-action_limit, action_limit) * kept.get("mask")[..., None])
+    kept = clip_actions(samples[valid].clone(), action_limit)
     return kept, {"generated": float(num_samples), "valid": float(valid.sum()),
                   "valid_rate": float(valid.double().mean())}
 

@@ -14,7 +14,7 @@ from torchrl_ftb.diffusion.condition import TrajectoryEncoder
 from torchrl_ftb.diffusion.loss import DiffusionLoss
 from torchrl_ftb.diffusion.model import TrajectoryDiffuser
 from torchrl_ftb.diffusion.normalizer import TrajectoryNormalizer
-from torchrl_ftb.diffusion.presets import PRESETS, get_preset, make_diffuser, run_settings
+from torchrl_ftb.diffusion.presets import PRESETS, get_preset, make_diffuser, parse_overrides, run_settings
 from torchrl_ftb.diffusion.process import SAMPLERS, DiffusionProcess
 from torchrl_ftb.diffusion.sampler import DiffusionSampler
 from torchrl_ftb.diffusion.train import load_diffuser, save_diffuser, train_diffuser
@@ -32,6 +32,7 @@ __all__ = [
     "PRESETS",
     "get_preset",
     "make_diffuser",
+    "parse_overrides",
     "run_settings",
     "train_diffuser",
     "save_diffuser",

@@ -57,6 +57,7 @@ import warnings
 from typing import Sequence
 
 import torch
+import yaml
 from tensordict import TensorDictBase
 
 from torchrl_ftb.diffusion.backbones.unet import TemporalUnet
@@ -65,7 +66,7 @@ from torchrl_ftb.diffusion.model import TrajectoryDiffuser
 from torchrl_ftb.diffusion.normalizer import TrajectoryNormalizer
 from torchrl_ftb.diffusion.process import DiffusionProcess
 
-__all__ = ["PRESETS", "get_preset", "make_diffuser", "run_settings"]
+__all__ = ["PRESETS", "get_preset", "make_diffuser", "parse_overrides", "run_settings"]
 
 _MODEL_DEFAULTS = dict(
     hidden_dim=32,
@@ -111,6 +112,25 @@ def get_preset(name: str) -> dict:
     if name not in PRESETS:
         raise ValueError(f"unknown diffuser preset {name!r}; choose one of {sorted(PRESETS)}")
     return copy.deepcopy(PRESETS[name])
+
+
+def parse_overrides(items: Sequence[str]) -> dict:
+    """``["KEY=VALUE", ...]`` (command-line model-field overrides) as ``{KEY: YAML value}``.
+
+    Example:
+        >>> parse_overrides(["concat_condition=true", "hidden_dim=16"])
+        {'concat_condition': True, 'hidden_dim': 16}
+
+    Raises:
+        ValueError: an item without ``=`` or with an empty key.
+    """
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise ValueError(f"parse_overrides: expected KEY=VALUE, got {item!r}")
+        out[key.strip()] = yaml.safe_load(value)
+    return out
 
 
 def run_settings(

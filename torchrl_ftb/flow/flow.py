@@ -65,8 +65,8 @@ from torchrl_ftb.preference import (
 )
 
 __all__ = [
-    "FlowToBetter", "FlowResult", "adaptive_flow_steps", "default_min_length", "improves", "masked_true_return",
-    "normalized_scores", "trajectory_validity",
+    "FlowToBetter", "FlowResult", "adaptive_flow_steps", "clip_actions", "default_min_length", "improves",
+    "masked_true_return", "normalized_scores", "trajectory_validity",
 ]
 
 TRAJ_KEYS = ("observation", "action", "mask")
@@ -138,6 +138,21 @@ def trajectory_validity(
     valid = finite & in_bounds & long_enough & actions_ok
     return {"finite": finite, "in_bounds": in_bounds, "long_enough": long_enough, "actions_ok": actions_ok,
             "valid": valid}
+
+
+def clip_actions(trajs: TensorDictBase, action_limit: float) -> TensorDictBase:
+    """Clip the ``action`` of generated trajectories to ``[-action_limit, action_limit]`` and zero
+    it on padded steps, in place (what a valid sample's small overshoot becomes); returns ``trajs``.
+
+    Example:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> td = TensorDict({"action": torch.tensor([[[1.2], [0.5]]]), "mask": torch.tensor([[True, False]])}, [1, 2])
+        >>> clip_actions(td, 1.0)["action"].flatten().tolist()
+        [1.0, 0.0]
+    """
+    trajs.set("action", trajs.get("action").clamp(-action_limit, action_limit) * trajs.get("mask")[..., None])
+    return trajs
 
 
 def default_min_length(trajs: TensorDictBase) -> int:
@@ -446,9 +461,7 @@ class FlowToBetter(nn.Module):
                 accept = valid & better & torch.isfinite(new_scores)
                 true_gain = None
                 if bool(accept.any()):
-                    accepted = samples[accept].select(*self.keys).clone()
-                    act = accepted.get("action").clamp(-self.action_limit, self.action_limit)
-                    accepted.set("action", act * accepted.get("mask")[..., None])
+                    accepted = clip_actions(samples[accept].select(*self.keys).clone(), self.action_limit)
                     if self.keep_reward:  # padding carries no reward
                         accepted.set(REWARD_KEY, accepted.get(REWARD_KEY) * accepted.get("mask")[..., None])
                     current[accept] = accepted
