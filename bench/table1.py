@@ -5,9 +5,17 @@ Run cells (each cell a subprocess of the recipe; a cell whose JSON exists is ski
     python bench/table1.py --methods bc10,td3bc,iql,iql_rpsi,oprl,ftb \\
         --tasks button-press-v3,drawer-open-v3 --seeds 0,1,2 --preset cpu --teacher return
 
-Write the table into BENCHMARKS.md between ``<!-- table1:start -->`` and ``<!-- table1:end -->``:
+Write the table into BENCHMARKS.md between ``<!-- table1:start -->`` and ``<!-- table1:end -->``
+(``--section NAME``: between ``<!-- NAME:start -->`` and ``<!-- NAME:end -->``, e.g. for a second
+results directory):
 
     python bench/table1.py --write-md
+    python bench/table1.py --write-md --results-dir bench/results/table1_v2 --section table1-v2
+
+Turn a finished run of the recipe made outside the harness into a cell (its metrics JSON names
+the task, seed and teacher; the cell records ``imported_from`` and the run's own command):
+
+    python bench/table1.py --import-run outputs/exp/drawer-v2 --results-dir bench/results/table1_v2
 
 Each cell writes ``bench/results/table1/<method>__<task>__<teacher>__seed<k>.json`` with the
 command, config (overrides + the run's resolved config), git commit, machine, wall time and
@@ -36,7 +44,11 @@ from torchrl_ftb.provenance import git_commit, machine_info, write_json
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS_DIR = ROOT / "bench" / "results" / "table1"
-START, END = "<!-- table1:start -->", "<!-- table1:end -->"
+
+
+def markers(section: str = "table1") -> tuple[str, str]:
+    """The HTML comments that delimit a generated section of BENCHMARKS.md."""
+    return f"<!-- {section}:start -->", f"<!-- {section}:end -->"
 
 #: column order and display names (the paper's names where it has the method)
 METHOD_NAMES = {
@@ -116,6 +128,47 @@ def _find_metrics(run_dir: Path) -> Path:
     return found[-1]
 
 
+def import_run(run_dir: Path, *, results_dir: Path, overwrite: bool = False) -> dict[str, Any]:
+    """Write the cell JSON of a finished recipe run that was not started by this harness.
+
+    The cell's method, task, seed, teacher and preset come from the run's metrics JSON (both
+    recipes record them; ``recipes/ftb_offline.py`` runs are ``ftb``); ``command``,
+    ``git_commit``, ``machine`` and ``wall_time_s`` are the run's own, and ``imported_from``
+    names the run directory.
+
+    Raises:
+        ValueError: the metrics JSON lacks one of those fields or a score (an unfinished run),
+            or the cell exists and ``overwrite`` is False.
+        FileNotFoundError: ``run_dir`` has no metrics JSON.
+    """
+    run_dir = Path(run_dir)
+    metrics_file = _find_metrics(run_dir)
+    metrics = json.loads(metrics_file.read_text())
+    teacher = metrics.get("teacher", (metrics.get("labels") or {}).get("teacher"))
+    missing = [k for k in ("env", "seed", "preset", "command", "wall_time_s") if k not in metrics]
+    if missing or teacher is None:
+        raise ValueError(f"{metrics_file}: cannot import, the metrics JSON lacks "
+                         f"{missing + ([] if teacher is not None else ['teacher'])}")
+    score_name, score = _score_from_metrics(metrics)
+    method = str(metrics.get("method", "ftb"))
+    task, seed, teacher = str(metrics["env"]), int(metrics["seed"]), str(teacher).split("(")[0]
+    out = cell_path(results_dir, method, task, teacher, seed)
+    if out.exists() and not overwrite:
+        raise ValueError(f"{out}: the cell exists; not overwritten")
+    config_file = run_dir / "config.yaml"
+    record = {
+        "method": method, "env": task, "seed": seed, "teacher": teacher, "preset": str(metrics["preset"]),
+        "score_name": score_name, "score": score, "wall_time_s": float(metrics["wall_time_s"]),
+        "threads": None, "command": str(metrics["command"]),
+        "config": {"overrides": None, "resolved": config_file.read_text() if config_file.exists() else None},
+        "git_commit": metrics.get("git_commit"), "machine": metrics.get("machine"), "run_dir": str(run_dir),
+        "metrics_file": str(metrics_file), "metrics": metrics, "imported_from": str(run_dir),
+    }
+    write_cell_json(out, record)
+    print(f"[table1] imported {out.name} from {run_dir}: {score_name} = {score:.4f}", flush=True)
+    return record
+
+
 def run_cell(method: str, task: str, seed: int, *, teacher: str, preset: str, extra: list[str],
              runs_dir: Path, results_dir: Path, threads: int = 1,
              python: str = sys.executable) -> dict[str, Any] | None:
@@ -188,7 +241,8 @@ def _fmt(value: float, *, big: bool) -> str:
     return f"{value:.1f}" if big else f"{value:.2f}"
 
 
-def render_table(cells: list[dict[str, Any]]) -> str:
+def render_table(cells: list[dict[str, Any]], *, source: str = "bench/results/table1",
+                 command: str = "python bench/table1.py --write-md") -> str:
     """The Markdown section: ours (mean ± std over seeds, n shown) beside the paper's numbers."""
     teachers = sorted({c.get("teacher", "return") for c in cells}) or ["return"]
     lines = [
@@ -197,8 +251,8 @@ def render_table(cells: list[dict[str, Any]]) -> str:
         "(scripted teacher, 5 seeds; its offline-RL columns are CORL's numbers), shown for reference only. "
         "Our datasets are *generated here* (Meta-World v3 with the IPL recipe, our own locomotion "
         "behaviour data), not D4RL's or IPL's files, and our tasks are v3 where the paper's are v2, "
-        "so the numbers are not directly comparable. Generated by `python bench/table1.py --write-md` "
-        "from `bench/results/table1/*.json`.",
+        "so the numbers are not directly comparable. "
+        f"Generated by `{command}` from `{source}/*.json`.",
         "",
     ]
     if not cells:
@@ -271,17 +325,24 @@ def render_flow_table(cells: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
-def write_markdown(results_dir: Path, md_path: Path) -> None:
-    """Replace the marked section of ``md_path`` (created or appended if absent), atomically."""
+def write_markdown(results_dir: Path, md_path: Path, *, section: str = "table1") -> None:
+    """Replace the ``section``'s marked part of ``md_path`` (created or appended if absent), atomically."""
+    start, end = markers(section)
     cells = load_cells(results_dir)
-    body = render_table(cells)
+    try:
+        source = str(Path(results_dir).resolve().relative_to(ROOT))
+    except ValueError:
+        source = str(results_dir)
+    command = "python bench/table1.py --write-md" + (
+        "" if section == "table1" else f" --results-dir {source} --section {section}")
+    body = render_table(cells, source=source, command=command)
     flow = render_flow_table(cells)
-    section = f"{START}\n{body}\n\n{flow}\n{END}" if flow else f"{START}\n{body}\n{END}"
+    block = f"{start}\n{body}\n\n{flow}\n{end}" if flow else f"{start}\n{body}\n{end}"
     text = md_path.read_text() if md_path.exists() else "# Benchmarks\n"
-    if START in text and END in text and text.index(START) < text.index(END):
-        text = text[: text.index(START)] + section + text[text.index(END) + len(END):]
+    if start in text and end in text and text.index(start) < text.index(end):
+        text = text[: text.index(start)] + block + text[text.index(end) + len(end):]
     else:
-        text = text.rstrip() + "\n\n## Table 1 (scripted teachers)\n\n" + section + "\n"
+        text = text.rstrip() + f"\n\n## Table 1 (scripted teachers; {source})\n\n" + block + "\n"
     fd, tmp = tempfile.mkstemp(dir=md_path.parent, prefix=f".{md_path.name}.", suffix=".tmp")
     with os.fdopen(fd, "w") as f:
         f.write(text)
@@ -311,11 +372,19 @@ def main(argv: Iterable[str] | None = None) -> int:
     parser.add_argument("--runs-dir", type=Path, default=ROOT / "outputs" / "table1")
     parser.add_argument("--write-md", action="store_true", help="only (re)write the BENCHMARKS.md section")
     parser.add_argument("--md", type=Path, default=ROOT / "BENCHMARKS.md")
+    parser.add_argument("--section", default="table1",
+                        help="with --write-md: the BENCHMARKS.md section (markers <!-- NAME:start/end -->)")
+    parser.add_argument("--import-run", type=Path, nargs="+", default=None, metavar="RUN_DIR",
+                        help="write the cells of finished recipe runs made outside the harness, then stop")
     parser.add_argument("--dry-run", action="store_true", help="list the cells and whether they are done")
     args = parser.parse_args(list(argv) if argv is not None else None)
 
     if args.write_md:
-        write_markdown(args.results_dir, args.md)
+        write_markdown(args.results_dir, args.md, section=args.section)
+        return 0
+    if args.import_run:
+        for run_dir in args.import_run:
+            import_run(run_dir, results_dir=args.results_dir)
         return 0
     unknown = [m for m in args.methods if m not in METHOD_NAMES]
     if unknown:

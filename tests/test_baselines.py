@@ -212,6 +212,32 @@ def test_table1_markdown_between_markers(tmp_path):
     assert "| button-press-v3 | success | 0 | 2 | 37 | 0.90 / 0.30 | 10.0 → 12.5 | 100.0 → 140.0 | 300.0 → 320.0 | 1.00 | 20.0 | — |" in section
 
 
+def test_table1_imports_a_finished_run_into_its_own_section(tmp_path):
+    table1 = load_script(ROOT / "bench" / "table1.py", "bench_table1")
+    run = tmp_path / "run"
+    run.mkdir()
+    metrics = {"env": "drawer-open-v3", "seed": 0, "teacher": "return", "preset": "cpu", "wall_time_s": 1560.0,
+               "command": "recipes/ftb_offline.py env.name=drawer-open-v3", "eval": {"success_rate": 0.3}}
+    (run / "metrics.json").write_text(json.dumps({k: v for k, v in metrics.items() if k != "teacher"}))
+    cells = tmp_path / "cells_v2"
+    with pytest.raises(ValueError, match="metrics.json.*lacks.*teacher"):
+        table1.import_run(run, results_dir=cells)
+    (run / "metrics.json").write_text(json.dumps(metrics))
+    record = table1.import_run(run, results_dir=cells)
+    assert (record["method"], record["score"], record["imported_from"]) == ("ftb", 0.3, str(run))
+    assert (cells / "ftb__drawer-open-v3__return__seed0.json").exists()
+    with pytest.raises(ValueError, match="exists"):  # never overwritten
+        table1.import_run(run, results_dir=cells)
+    md = tmp_path / "BENCHMARKS.md"
+    md.write_text("# B\n\n<!-- table1:start -->\nkeep\n<!-- table1:end -->\n\n<!-- table1-v2:start -->\nold\n"
+                  "<!-- table1-v2:end -->\n")
+    table1.write_markdown(cells, md, section="table1-v2")
+    text = md.read_text()
+    assert "keep" in text and "old" not in text
+    section = text.split("<!-- table1-v2:start -->")[1].split("<!-- table1-v2:end -->")[0]
+    assert "0.30 ± 0.00 (n=1)" in section and "--section table1-v2" in section
+
+
 def test_learned_reward_with_observation_normaliser():
     """``normalize_observations`` fits r_psi's normaliser on the dataset, and the relabelling
     transform then feeds raw observations through it (rewards unchanged by an obs offset)."""
