@@ -11,7 +11,9 @@ Stages (each ends with a checkpoint in ``run_dir/checkpoints`` and an entry in
 ``s_psi`` → blocks → trajectory diffuser (periodic checkpoints) → flow to better → BC
 (periodic checkpoints) → evaluation. With ``resume=true`` finished stages are loaded,
 unfinished training continues from its last checkpoint; a different config, a corrupt or
-mismatched checkpoint raise a clear error and nothing is overwritten.
+mismatched checkpoint raise a clear error and nothing is overwritten. ``stop_after=<stage>``
+stops once that stage is done (``metrics_partial.json``; e.g. ``stop_after=blocks`` for
+preference augmentation alone); a later ``resume=true`` run continues from there.
 
 The run directory receives ``config.yaml`` (resolved), ``metrics.json``, ``report.md``,
 ``plots/*.png`` (score and true return per flow step, before-vs-after histograms) and the
@@ -75,7 +77,8 @@ from torchrl_ftb.provenance import git_commit, machine_info, make_logger, write_
 
 STAGES = ("dataset", "labels", "score_model", "blocks", "diffuser", "flow", "bc", "eval")
 # config entries that may change between a killed run and its resume
-RESUME_FREE_KEYS = ("resume", "overwrite", "redo_from", "progress", "logger", "device", "run_dir", "hydra")
+RESUME_FREE_KEYS = ("resume", "overwrite", "redo_from", "stop_after", "progress", "logger", "device", "run_dir",
+                    "hydra")
 #: entries of another stage's section that only a later stage reads (free when that one is redone):
 #: the diffuser's sampling settings are used by the flow only
 STAGE_OWNED_KEYS = {"flow": (("diffuser", "sampler"), ("diffuser", "sample_steps"), ("diffuser", "guidance"))}
@@ -417,6 +420,9 @@ def run(cfg: DictConfig) -> dict:
     kind = env_kind(cfg.env.name)
     if cfg.labels.teacher not in ("return", "success"):
         raise ValueError(f"labels.teacher={cfg.labels.teacher!r}: choose 'return' or 'success'")
+    stop_after = cfg.get("stop_after")
+    if stop_after is not None and stop_after not in STAGES:
+        raise ValueError(f"stop_after={stop_after!r}: not a stage; choose one of {list(STAGES)}")
     t_start = time.perf_counter()
     torch.manual_seed(int(cfg.seed))
     device = torch.device(cfg.device)
@@ -430,6 +436,18 @@ def run(cfg: DictConfig) -> dict:
 
     def timed(name: str, t0: float) -> None:
         timings[name] = timings.get(name, 0.0) + time.perf_counter() - t0
+
+    def stopped(stage: str, **extra: Any) -> dict | None:
+        """With ``stop_after=stage``: the partial metrics (``metrics_partial.json``), else None."""
+        if stage != stop_after:
+            return None
+        partial = {"env": cfg.env.name, "preset": cfg.preset, "teacher": str(cfg.labels.teacher),
+                   "seed": int(cfg.seed), "stopped_after": stage, **extra, "stage_time_s": timings,
+                   "wall_time_s": time.perf_counter() - t_start, "git_commit": git_commit(),
+                   "machine": machine_info(), "command": " ".join(sys.argv), "run_dir": str(run_dir.path)}
+        write_json(run_dir.path / "metrics_partial.json", partial)
+        print(f"stopped after {stage} (stop_after); continue with resume=true run_dir={run_dir.path}")
+        return partial
 
     # 1. dataset ------------------------------------------------------------------------
     t0 = time.perf_counter()
@@ -446,6 +464,8 @@ def run(cfg: DictConfig) -> dict:
     elif run_dir.stages["dataset"].get("num_trajectories") != int(trajs.batch_size[0]):
         raise ValueError(f"{run_dir.stages_file}: the dataset changed since the run started")
     timed("dataset", t0)
+    if (out := stopped("dataset")) is not None:
+        return out
 
     # 2. labels -------------------------------------------------------------------------
     t0 = time.perf_counter()
@@ -460,11 +480,15 @@ def run(cfg: DictConfig) -> dict:
         run_dir.mark("labels", num_pairs=int(labels.batch_size[0]), teacher=teacher.name,
                      ties=int((labels.get("label") == 0.5).sum()))
     timed("labels", t0)
+    if (out := stopped("labels")) is not None:
+        return out
 
     # 3. score model, 4. blocks ---------------------------------------------------------
     t0 = time.perf_counter()
     model = stage_score_model(cfg, run_dir, trajs, labels, obs_dim, act_dim, device, logger)
     timed("score_model", t0)
+    if (out := stopped("score_model")) is not None:
+        return out
     t0 = time.perf_counter()
     scores, block_ids = stage_blocks(cfg, run_dir, trajs, model)
     returns = true_return(trajs, discount=float(cfg.labels.discount))
@@ -473,11 +497,15 @@ def run(cfg: DictConfig) -> dict:
         succ = (trajs.get(("next", "success")).squeeze(-1) & trajs.get("mask")).any(-1).float()
         quality.update({f"{k}_success": v for k, v in correlations(scores, succ).items()})
     timed("blocks", t0)
+    if (out := stopped("blocks", score_quality=quality)) is not None:
+        return out
 
     # 5. diffuser -----------------------------------------------------------------------
     t0 = time.perf_counter()
     diffuser, diffuser_summary = stage_diffuser(cfg, run_dir, trajs, scores, block_ids, obs_dim, act_dim, device, logger)
     timed("diffuser", t0)
+    if (out := stopped("diffuser", score_quality=quality, diffuser=diffuser_summary)) is not None:
+        return out
 
     # 6. flow ---------------------------------------------------------------------------
     t0 = time.perf_counter()
@@ -485,11 +513,17 @@ def run(cfg: DictConfig) -> dict:
     flow = stage_flow(cfg, run_dir, trajs, scores, block_ids, make_sampler(cfg, diffuser), model,
                       reward_fn, logger)
     timed("flow", t0)
+    if (out := stopped("flow", score_quality=quality, diffuser=diffuser_summary, flow=dict(flow["summary"]),
+                       flow_stats=flow["stats"])) is not None:
+        return out
 
     # 7. BC -----------------------------------------------------------------------------
     t0 = time.perf_counter()
     actor, bc_summary = stage_bc(cfg, run_dir, flow["trajectories"], obs_dim, act_dim, device, logger)
     timed("bc", t0)
+    if (out := stopped("bc", score_quality=quality, diffuser=diffuser_summary, flow=dict(flow["summary"]),
+                       flow_stats=flow["stats"], bc=bc_summary)) is not None:
+        return out
 
     # 8. evaluation ---------------------------------------------------------------------
     t0 = time.perf_counter()
@@ -532,6 +566,7 @@ def run(cfg: DictConfig) -> dict:
         "command": " ".join(sys.argv), "run_dir": str(run_dir.path),
     }
     write_json(run_dir.path / "metrics.json", metrics)
+    (run_dir.path / "metrics_partial.json").unlink(missing_ok=True)  # superseded by the whole run's
     write_report(run_dir, metrics, flow["stats"])
     rows = final_table(metrics)
     width = max(len(k) for k, _ in rows)

@@ -141,3 +141,22 @@ def test_bad_config_is_a_clear_error(tmp_path):
     # a locomotion env without the dataset kind
     with pytest.raises(ValueError, match="kind="):
         recipe.run(_cfg(tmp_path / "d", "env.name=hopper"))
+
+
+def test_stop_after_a_stage_then_resume_to_the_end(tmp_path):
+    """``stop_after=blocks``: preference augmentation alone (partial metrics, no diffuser);
+    a later ``resume=true`` run continues from the saved stages instead of redoing them."""
+    recipe = _recipe()
+    run_dir = tmp_path / "run"
+    with pytest.raises(ValueError, match="stop_after='sampling': not a stage"):
+        recipe.run(_cfg(run_dir, "stop_after=sampling"))
+    partial = recipe.run(_cfg(run_dir, "stop_after=blocks"))
+    assert partial["stopped_after"] == "blocks" and partial["score_quality"]["spearman_return"] > 0.5
+    stages = json.loads((run_dir / "stages.json").read_text())
+    assert stages["blocks"]["done"] and "diffuser" not in stages
+    assert (run_dir / "metrics_partial.json").is_file() and not (run_dir / "metrics.json").exists()
+    score_mtime = (run_dir / "checkpoints" / "score_model.pt").stat().st_mtime_ns
+    metrics = recipe.run(_cfg(run_dir, "resume=true"))
+    assert (run_dir / "checkpoints" / "score_model.pt").stat().st_mtime_ns == score_mtime  # loaded, not retrained
+    assert metrics["eval"]["num_episodes"] == 2 and metrics["score_quality"] == partial["score_quality"]
+    assert (run_dir / "metrics.json").is_file() and not (run_dir / "metrics_partial.json").exists()
