@@ -175,6 +175,7 @@ def main() -> None:
     if ckpt.exists():
         diffuser = load_diffuser(ckpt)
     elif args.preset is not None:
+        torch.manual_seed(int(cfg.seed))  # a fresh model's initial weights, as the recipe seeds them
         diffuser = make_diffuser(args.preset, obs_dim=trajs["observation"].shape[-1],
                                  action_dim=trajs["action"].shape[-1], horizon=trajs.batch_size[1], data=trajs,
                                  **overrides)
