@@ -35,7 +35,7 @@ if [ -n "${SMOKE:-}" ]; then  # CPU: the same steps at toy sizes
     RUN_EXTRA=(dataset.episodes_per_group=3 score_model.steps=20 dataset.cache_dir=/tmp/ftb_smoke_data)
     TAG=smoke; RUN=outputs/gpu_check_smoke
 else
-    DEVICE=cuda; PRESET=paper; BF16=(--autocast-bf16); STEPS=${STEPS:-20000}; EVERY=${EVERY:-1000}; WORKERS=16
+    DEVICE=cuda; PRESET=paper; BF16=(--autocast-bf16); STEPS=${STEPS:-20000}; EVERY=${EVERY:-2000}; WORKERS=16
     BUDGET=${BUDGET:-540}  # seconds for the whole script: the tool's 600 s limit, with room to copy results
     RUN_EXTRA=(dataset.cache_dir=/tmp/ftb_data)
     TAG=paper-gpu; RUN=outputs/gpu_check_run
