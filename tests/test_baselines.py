@@ -262,3 +262,20 @@ def test_learned_reward_with_observation_normaliser():
     plain, _ = train_reward_model(trajs, labels, model={"num_cells": 16, "num_layers": 2},
                                   training={"steps": 5, "eval_fraction": 0.0}, progress=False)
     assert not plain.normalizer_fitted
+
+
+def test_score_groups_report_splits_the_ranking_by_group():
+    groups_bench = load_script(ROOT / "bench" / "score_groups.py", "bench_score_groups")
+    returns = torch.tensor([1.0, 2.0, 3.0, 10.0, 20.0, 30.0], dtype=torch.float64)
+    groups = torch.tensor([0, 0, 0, 1, 1, 1])
+    lengths = torch.tensor([5.0, 5.0, 5.0, 9.0, 9.0, 9.0], dtype=torch.float64)
+    # groups ordered right, the ranking inside group 1 reversed
+    scores = torch.tensor([1.0, 2.0, 3.0, 30.0, 20.0, 10.0], dtype=torch.float64)
+    rep = groups_bench.group_report(scores, returns, lengths, groups, ["a", "b"])
+    assert rep["per_group"]["a"]["spearman_within"] == pytest.approx(1.0)
+    assert rep["per_group"]["b"]["spearman_within"] == pytest.approx(-1.0)
+    # overall 1 - 6 * 8 / 210; knowing only the group (ties inside groups) ranks better here
+    assert rep["spearman"] == pytest.approx(1 - 48 / 210)
+    assert rep["spearman_group_mean_return"] == pytest.approx(0.8783, abs=1e-4)
+    assert rep["spearman_group_means"] != rep["spearman_group_means"]  # NaN: two groups are too few to rank
+    assert rep["per_group"]["b"]["n"] == 3 and rep["per_group"]["b"]["return_mean"] == pytest.approx(20.0)
