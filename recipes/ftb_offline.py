@@ -437,12 +437,14 @@ def run(cfg: DictConfig) -> dict:
     def timed(name: str, t0: float) -> None:
         timings[name] = timings.get(name, 0.0) + time.perf_counter() - t0
 
-    def stopped(stage: str, **extra: Any) -> dict | None:
+    partial_metrics: dict[str, Any] = {}  # what the finished stages reported so far
+
+    def stopped(stage: str) -> dict | None:
         """With ``stop_after=stage``: the partial metrics (``metrics_partial.json``), else None."""
         if stage != stop_after:
             return None
         partial = {"env": cfg.env.name, "preset": cfg.preset, "teacher": str(cfg.labels.teacher),
-                   "seed": int(cfg.seed), "stopped_after": stage, **extra, "stage_time_s": timings,
+                   "seed": int(cfg.seed), "stopped_after": stage, **partial_metrics, "stage_time_s": timings,
                    "wall_time_s": time.perf_counter() - t_start, "git_commit": git_commit(),
                    "machine": machine_info(), "command": " ".join(sys.argv), "run_dir": str(run_dir.path)}
         write_json(run_dir.path / "metrics_partial.json", partial)
@@ -497,14 +499,16 @@ def run(cfg: DictConfig) -> dict:
         succ = (trajs.get(("next", "success")).squeeze(-1) & trajs.get("mask")).any(-1).float()
         quality.update({f"{k}_success": v for k, v in correlations(scores, succ).items()})
     timed("blocks", t0)
-    if (out := stopped("blocks", score_quality=quality)) is not None:
+    partial_metrics["score_quality"] = quality
+    if (out := stopped("blocks")) is not None:
         return out
 
     # 5. diffuser -----------------------------------------------------------------------
     t0 = time.perf_counter()
     diffuser, diffuser_summary = stage_diffuser(cfg, run_dir, trajs, scores, block_ids, obs_dim, act_dim, device, logger)
     timed("diffuser", t0)
-    if (out := stopped("diffuser", score_quality=quality, diffuser=diffuser_summary)) is not None:
+    partial_metrics["diffuser"] = diffuser_summary
+    if (out := stopped("diffuser")) is not None:
         return out
 
     # 6. flow ---------------------------------------------------------------------------
@@ -513,16 +517,16 @@ def run(cfg: DictConfig) -> dict:
     flow = stage_flow(cfg, run_dir, trajs, scores, block_ids, make_sampler(cfg, diffuser), model,
                       reward_fn, logger)
     timed("flow", t0)
-    if (out := stopped("flow", score_quality=quality, diffuser=diffuser_summary, flow=dict(flow["summary"]),
-                       flow_stats=flow["stats"])) is not None:
+    partial_metrics.update(flow=dict(flow["summary"]), flow_stats=flow["stats"])
+    if (out := stopped("flow")) is not None:
         return out
 
     # 7. BC -----------------------------------------------------------------------------
     t0 = time.perf_counter()
     actor, bc_summary = stage_bc(cfg, run_dir, flow["trajectories"], obs_dim, act_dim, device, logger)
     timed("bc", t0)
-    if (out := stopped("bc", score_quality=quality, diffuser=diffuser_summary, flow=dict(flow["summary"]),
-                       flow_stats=flow["stats"], bc=bc_summary)) is not None:
+    partial_metrics["bc"] = bc_summary
+    if (out := stopped("bc")) is not None:
         return out
 
     # 8. evaluation ---------------------------------------------------------------------
