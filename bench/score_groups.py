@@ -25,16 +25,15 @@ from omegaconf import OmegaConf
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
+
+from flow_diagnostics import spearman  # noqa: E402
 
 from torchrl_ftb.data import load_labels  # noqa: E402
 from torchrl_ftb.data.labels import true_return  # noqa: E402
 from torchrl_ftb.datasets import dataset_kwargs, make_dataset  # noqa: E402
-from torchrl_ftb.preference import correlations, load_score_model, score_trajectories  # noqa: E402
+from torchrl_ftb.preference import load_score_model, score_trajectories  # noqa: E402
 from torchrl_ftb.provenance import run_record, write_json  # noqa: E402
-
-
-def spearman(a: torch.Tensor, b: torch.Tensor) -> float:
-    return correlations(a, b)["spearman"] if a.numel() >= 3 else float("nan")
 
 
 def group_report(scores: torch.Tensor, returns: torch.Tensor, lengths: torch.Tensor, groups: torch.Tensor,
