@@ -37,7 +37,8 @@ from torchrl_ftb.datasets import dataset_kwargs, make_dataset  # noqa: E402
 from torchrl_ftb.diffusion import DiffusionSampler, get_preset, load_diffuser  # noqa: E402
 from torchrl_ftb.envs import metaworld_frame_stack_error, true_reward_fn  # noqa: E402
 from torchrl_ftb.flow import (  # noqa: E402
-    FlowToBetter, default_min_length, improves, masked_true_return, normalized_scores, trajectory_validity,
+    FlowToBetter, clip_actions, default_min_length, improves, masked_true_return, normalized_scores,
+    trajectory_validity,
 )
 from torchrl_ftb.preference import (  # noqa: E402
     correlations, load_score_model, score_trajectories, with_normalized_scores,
@@ -53,9 +54,7 @@ def spearman(a: torch.Tensor, b: torch.Tensor) -> float:
 def sample_true_return(samples, reward_fn) -> torch.Tensor:
     """True-reward-oracle return ``[N]`` of generated trajectories, actions clipped to the env's
     [-1, 1] first (as the flow does before accepting a sample)."""
-    clipped = samples.clone()
-    clipped["action"] = clipped["action"].clamp(-1, 1) * clipped["mask"][..., None]
-    return masked_true_return(clipped, reward_fn)
+    return masked_true_return(clip_actions(samples.clone(), 1.0), reward_fn)
 
 
 def load_run(run: Path, *, with_returns: bool = False):
