@@ -279,3 +279,23 @@ def test_score_groups_report_splits_the_ranking_by_group():
     assert rep["spearman_group_mean_return"] == pytest.approx(0.8783, abs=1e-4)
     assert rep["spearman_group_means"] != rep["spearman_group_means"]  # NaN: two groups are too few to rank
     assert rep["per_group"]["b"]["n"] == 3 and rep["per_group"]["b"]["return_mean"] == pytest.approx(20.0)
+
+
+def test_score_model_variants_crop_and_parse():
+    variants = load_script(ROOT / "bench" / "score_model_variants.py", "bench_score_model_variants")
+    assert variants.parse_variant("crop50") == {"crop": 50}
+    assert variants.parse_variant("pseudo0.99") == {"pseudo": 0.99}
+    assert variants.parse_variant("wd1e-2") == {"weight_decay": 0.01}
+    with pytest.raises(ValueError, match="unknown variant 'crop'"):
+        variants.parse_variant("crop")
+    valid = torch.tensor([3, 10, 7])  # prefix-valid masks of a [3, 12] batch
+    mask = torch.arange(12) < valid[:, None]
+    trajs = TensorDict({"mask": mask, "observation": torch.zeros(3, 12, 2)}, [3, 12])
+    gen = torch.Generator().manual_seed(0)
+    for _ in range(20):
+        cropped = variants.crop_window(trajs, 5, gen)["mask"]
+        assert not (cropped & ~mask).any()  # never a padded step
+        assert cropped.sum(-1).tolist() == [3, 5, 5]  # shorter than the window: kept whole
+        starts = cropped.float().argmax(-1)
+        assert all(cropped[i, s:s + n].all() for i, (s, n) in enumerate(zip(starts.tolist(), [3, 5, 5])))
+    assert trajs["mask"].equal(mask)  # the input is left alone
