@@ -50,6 +50,7 @@ from torchrl_ftb.envs import (
     check_env_matches,
     env_kind,
     make_env,
+    metaworld_frame_stack_check,
     normalized_score_fn,
     observation_layout,
     true_reward_fn,
@@ -314,6 +315,8 @@ def stage_flow(cfg, run: RunDir, trajs, scores, block_ids, sampler, model, true_
         min_length=None if f.min_length is None else int(f.min_length),
         true_reward_fn=true_reward_fn, batch_size=int(f.batch_size), seed=int(cfg.seed),
         ensemble_rule=str(f.get("ensemble_rule", "mean")), logger=logger,
+        validity_fn=None if f.get("max_frame_stack_error") is None
+        else metaworld_frame_stack_check(float(f.max_frame_stack_error)),
         progress=bool(cfg.progress),
     )
     res = flow(trajs, scores=scores, block_ids=block_ids)
@@ -420,6 +423,9 @@ def run(cfg: DictConfig) -> dict:
     kind = env_kind(cfg.env.name)
     if cfg.labels.teacher not in ("return", "success"):
         raise ValueError(f"labels.teacher={cfg.labels.teacher!r}: choose 'return' or 'success'")
+    if cfg.flow.get("max_frame_stack_error") is not None and kind != "metaworld":
+        raise ValueError(f"flow.max_frame_stack_error is a Meta-World check (stacked previous frame); "
+                         f"env.name={cfg.env.name!r} is {kind}: leave it null")
     stop_after = cfg.get("stop_after")
     if stop_after is not None and stop_after not in STAGES:
         raise ValueError(f"stop_after={stop_after!r}: not a stage; choose one of {list(STAGES)}")

@@ -134,6 +134,47 @@ def test_flow_rejects_invalid_samples_and_stops_early():
         FlowToBetter(_shift_sampler(), _sum_ax, top_k=3)
 
 
+
+def test_validity_fn_is_anded_with_the_generic_checks():
+    data = make_toy_dataset(num_trajectories=30, horizon=H, seed=2)
+    calls = []
+
+    def only_even(samples):  # a domain check: keep the samples of even conditions
+        calls.append(samples.batch_size[0])
+        return torch.arange(samples.batch_size[0]) % 2 == 0
+
+    flow = FlowToBetter(_shift_sampler(0.3), _sum_ax, top_k=6, threshold=1.0, flow_steps=1, progress=False,
+                        validity_fn=only_even)
+    res = flow(data)
+    assert calls == [6]
+    assert res.generated.batch_size[0] == 3  # improving samples, half of them domain-valid
+    assert res.stats[0]["domain_valid_rate"] == pytest.approx(0.5)
+    assert res.stats[0]["accept_rate"] == pytest.approx(0.5)
+    bad = FlowToBetter(_shift_sampler(0.3), _sum_ax, top_k=6, flow_steps=1, progress=False,
+                       validity_fn=lambda s: torch.ones(2, dtype=torch.bool))
+    with pytest.raises(ValueError, match="validity_fn returned shape"):
+        bad(data)
+
+
+def test_metaworld_frame_stack_check_rejects_inconsistent_frames():
+    from tensordict import TensorDict
+
+    from torchrl_ftb.envs import metaworld_frame_stack_check
+
+    obs = torch.randn(3, 6, 39) * 0.1
+    obs[:, 1:, 18:36] = obs[:, :-1, 0:18]  # real data: the stacked frame is the previous step
+    obs[1, 3, 18:21] += 0.05  # one transition 5 cm off: mean error 1 cm over 5 transitions
+    obs[2, 2:, 18:21] += 0.3
+    mask = torch.ones(3, 6, dtype=torch.bool)
+    mask[0, 4:] = False
+    obs[0, 4:] = 9.0  # padding never counts
+    td = TensorDict({"observation": obs, "mask": mask}, [3, 6])
+    assert metaworld_frame_stack_check(0.02)(td).tolist() == [True, True, False]
+    assert metaworld_frame_stack_check(0.005)(td).tolist() == [True, False, False]
+    with pytest.raises(ValueError, match="max_error"):
+        metaworld_frame_stack_check(-1.0)
+
+
 class _TwoMembers(ScoreModel):
     """A 2-member "ensemble": member 0 scores x-actions (what the sampler pushes up), member 1
     y-actions (untouched by it): the members disagree about every sample."""

@@ -132,6 +132,9 @@ def test_bad_config_is_a_clear_error(tmp_path):
     # the toy env's observation has no stacked frames to rebuild
     with pytest.raises(ValueError, match="no known observation structure for env 'toy'"):
         recipe.run(_cfg(tmp_path / "e", "diffuser.observation_structure=true"))
+    with pytest.raises(ValueError, match="max_frame_stack_error is a Meta-World check"):
+        recipe.run(_cfg(tmp_path / "f", "flow.max_frame_stack_error=0.02"))
+    assert not (tmp_path / "f").exists()  # refused before anything is written
     # a dataset whose dims do not match the env
     from torchrl_ftb.envs import check_env_matches
     from torchrl_ftb.testing import MetaWorldMockEnv, make_toy_dataset

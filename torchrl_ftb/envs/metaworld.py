@@ -41,6 +41,7 @@ __all__ = [
     "metaworld_true_reward",
     "metaworld_reward_error",
     "metaworld_frame_stack_error",
+    "metaworld_frame_stack_check",
 ]
 
 METAWORLD_MAX_EPISODE_STEPS = 500
@@ -489,3 +490,28 @@ def metaworld_frame_stack_error(trajectories: TensorDictBase, *, pooled: bool = 
     if pooled:
         return err.sum() / pair.sum() if bool(pair.any()) else torch.tensor(float("nan"))
     return err.sum(-1) / pair.sum(-1).clamp_min(1)
+
+
+def metaworld_frame_stack_check(max_error: float) -> Callable[[TensorDictBase], torch.Tensor]:
+    """A flow validity check: ``[N]`` True where the mean frame-stack error is ``<= max_error`` m.
+
+    For :class:`torchrl_ftb.flow.FlowToBetter` (``validity_fn``): rejects generated trajectories
+    whose consecutive steps are not copies of one another (:func:`metaworld_frame_stack_error`),
+    i.e. physically inconsistent samples that the simulator's reward can still score highly.
+
+    Example:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> obs = torch.zeros(2, 3, 39)
+        >>> obs[1, 1, 18:21] = 0.1  # the second trajectory's stacked frame is 17 cm off
+        >>> td = TensorDict({"observation": obs, "mask": torch.ones(2, 3, dtype=torch.bool)}, [2, 3])
+        >>> metaworld_frame_stack_check(0.02)(td).tolist()
+        [True, False]
+    """
+    if not max_error >= 0:
+        raise ValueError(f"metaworld_frame_stack_check: max_error must be >= 0 metres, got {max_error}")
+
+    def check(trajectories: TensorDictBase) -> torch.Tensor:
+        return metaworld_frame_stack_error(trajectories) <= max_error
+
+    return check

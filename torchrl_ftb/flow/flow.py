@@ -6,7 +6,9 @@ condition (and joins the pool) only when it is **valid** and its score **improve
 
 * **valid**: finite on its valid steps; every diffused value within ``max_abs_z`` on the
   diffuser's normaliser scale (authors: 30); detected length ``>= min_length``; actions
-  within ``action_limit + action_tolerance``;
+  within ``action_limit + action_tolerance``; and, when given, ``validity_fn(samples)`` (a
+  domain check, e.g. Meta-World's frame-stack consistency,
+  :func:`torchrl_ftb.envs.metaworld_frame_stack_check`);
 * **improves**: on the *dataset-normalised* score ``ŝ = (s - s_min) / (s_max - s_min)``
   (``s_min``/``s_max`` computed once from the dataset scores, with the score model's own
   ``gamma``: the one score definition used for blocks, filter and reports), a sample is
@@ -238,6 +240,8 @@ class FlowToBetter(nn.Module):
         max_abs_z, min_length, action_limit, action_tolerance: validity (see
             :func:`trajectory_validity`); ``min_length=None`` uses half the shortest start
             trajectory (at least 2).
+        validity_fn: optional extra validity, ``[N, H]`` samples -> ``[N]`` bool (True: valid),
+            ANDed with :func:`trajectory_validity`; its share is logged as ``domain_valid_rate``.
         normalizer: object with ``normalize(x)`` for the |z| check; default the sampler's
             ``normalizer`` attribute, else a z-score fitted on the dataset's valid steps.
         true_reward_fn: ``(observation, action) -> reward`` ground truth, for statistics only.
@@ -268,6 +272,7 @@ class FlowToBetter(nn.Module):
         min_length: int | None = None,
         action_limit: float = 1.0,
         action_tolerance: float = 0.5,
+        validity_fn: Callable[[TensorDictBase], torch.Tensor] | None = None,
         normalizer: Any | None = None,
         true_reward_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
         batch_size: int = 256,
@@ -307,6 +312,7 @@ class FlowToBetter(nn.Module):
         self.min_length = min_length
         self.action_limit = float(action_limit)
         self.action_tolerance = float(action_tolerance)
+        self.validity_fn = validity_fn
         self.normalizer = normalizer
         self.true_reward_fn = true_reward_fn
         self.batch_size = int(batch_size)
@@ -456,6 +462,13 @@ class FlowToBetter(nn.Module):
                     action_limit=self.action_limit, action_tolerance=self.action_tolerance,
                 )
                 valid = validity["valid"].cpu()
+                domain_valid = None
+                if self.validity_fn is not None:
+                    domain_valid = torch.as_tensor(self.validity_fn(samples)).bool().cpu()
+                    if domain_valid.shape != valid.shape:
+                        raise ValueError(f"FlowToBetter: validity_fn returned shape {list(domain_valid.shape)}, "
+                                         f"expected {list(valid.shape)} (one bool per sample)")
+                    valid = valid & domain_valid
                 better = improves(normalized_scores(new_members, m_min, m_max),
                                   normalized_scores(cur_members, m_min, m_max), self.threshold).all(0)
                 accept = valid & better & torch.isfinite(new_scores)
@@ -486,6 +499,8 @@ class FlowToBetter(nn.Module):
                     "score_max": float(cur_scores.max()),
                     "length_mean": float(current.get("mask").sum(-1).double().mean()),
                 }
+                if domain_valid is not None:
+                    row["domain_valid_rate"] = float(domain_valid.double().mean())
                 if cur_true is not None:
                     row.update(true_return_mean=float(cur_true.mean()), true_return_max=float(cur_true.max()))
                     if true_gain is not None:  # did the accepted samples beat what they replaced?
