@@ -134,7 +134,6 @@ def test_flow_rejects_invalid_samples_and_stops_early():
         FlowToBetter(_shift_sampler(), _sum_ax, top_k=3)
 
 
-
 def test_validity_fn_is_anded_with_the_generic_checks():
     data = make_toy_dataset(num_trajectories=30, horizon=H, seed=2)
     calls = []
