@@ -1,0 +1,142 @@
+"""Benchmark: does choosing *which* 30 pairs to label lift s_psi's ranking? (issue #3, exploratory)
+
+``bench/score_groups.py`` found that 30 uniformly drawn full-trajectory pairs mostly teach the
+order of the dataset's behaviour groups, rarely the order inside them. Active query selection is
+the PbRL answer (PEBBLE, Lee et al. 2021; OPRL, Shin et al. 2023): label a few random pairs, then
+ask the teacher about the pairs the current model is least sure of. Strategies (same 30-label
+budget, same teacher, same final model):
+
+* ``random``       -- 30 uniform pairs (the recipe's labels, ``make_scripted_labels``);
+* ``disagreement`` -- ``--initial`` uniform pairs, then rounds of ``--per-round`` pairs with the
+  largest std over a ``--members``-member ensemble of ``P(tau1 > tau0)`` among all pairs of the
+  dataset (the ensemble retrained on every round's labels);
+* ``entropy``      -- the same rounds with one model: the pairs whose ``P(tau1 > tau0)`` is
+  closest to 0.5.
+
+The final score model is the recipe's ``cpu``-preset s_psi (normalised r_psi, 256x3, 500
+full-batch Adam steps at lr 1e-3) trained on the 30 chosen labels, so only the choice of pairs
+differs. Reports Spearman(s_psi, true return) over the whole dataset per label seed. Not a test.
+
+    python bench/score_model_queries.py --task button-press-v3 --strategies random disagreement entropy
+
+Writes bench/results/score_model_queries_<task>.json (command, config, commit, machine,
+results), rewritten after every strategy.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+
+def label_pairs(trajs: TensorDictBase, index0: torch.Tensor, index1: torch.Tensor, teacher) -> TensorDict:
+    """A full-trajectory label set for the given pairs (the layout of ``make_scripted_labels``)."""
+    tau0, tau1 = trajs[index0], trajs[index1]
+    labels = TensorDict({"tau0": tau0, "tau1": tau1, "label": teacher(tau0, tau1).to(torch.float32),
+                         "index0": index0, "index1": index1}, [index0.shape[0]])
+    labels.set_non_tensor("teacher", teacher.name)
+    return labels
+
+
+def fit(trajs: TensorDictBase, labels: TensorDictBase, *, members: int, seed: int, steps: int, lr: float):
+    from torchrl_ftb.preference import ScoreModel, score_trajectories, train_score_model
+
+    pool = trajs.select("observation", "action", "mask")
+    model = ScoreModel(pool["observation"].shape[-1], pool["action"].shape[-1], num_members=members,
+                       seed=seed).fit_normalizer(pool)
+    train_score_model(model, labels.select("tau0", "tau1", "label"), steps=steps, lr=lr, eval_fraction=0.0,
+                      seed=seed, progress=False)
+    return score_trajectories(model, pool, members=True)  # [C, N]
+
+
+def next_queries(scores: torch.Tensor, asked: set, count: int, strategy: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """The ``count`` unasked pairs (i < j) a model with member scores ``[C, N]`` is least sure of."""
+    n = scores.shape[1]
+    i, j = torch.triu_indices(n, n, offset=1)
+    prob = torch.sigmoid(scores[:, j] - scores[:, i])  # [C, P]
+    value = prob.std(0) if strategy == "disagreement" else -(prob.mean(0) - 0.5).abs()
+    if asked:
+        done = torch.tensor([a * n + b for a, b in asked])
+        value[torch.isin(i * n + j, done)] = -float("inf")
+    top = value.topk(count).indices
+    return i[top], j[top]
+
+
+def choose_labels(trajs, teacher, strategy: str, *, seed: int, args) -> TensorDict:
+    from torchrl_ftb.data.labels import make_scripted_labels
+
+    if strategy == "random":
+        return make_scripted_labels(trajs, num_pairs=args.num_labels, teacher=teacher, seed=seed)
+    labels = make_scripted_labels(trajs, num_pairs=args.initial, teacher=teacher, seed=seed)
+    members = args.members if strategy == "disagreement" else 1
+    round_ = 0
+    while labels.batch_size[0] < args.num_labels:
+        scores = fit(trajs, labels, members=members, seed=seed * 1000 + round_, steps=args.round_steps, lr=args.lr)
+        asked = {tuple(sorted((int(a), int(b)))) for a, b in zip(labels["index0"], labels["index1"])}
+        count = min(args.per_round, args.num_labels - labels.batch_size[0])
+        i0, i1 = next_queries(scores, asked, count, strategy)
+        new = label_pairs(trajs, i0, i1, teacher)
+        labels = torch.cat([labels.select("tau0", "tau1", "label", "index0", "index1"),
+                            new.select("tau0", "tau1", "label", "index0", "index1")], 0)
+        labels.set_non_tensor("teacher", teacher.name)
+        round_ += 1
+    return labels
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--task", default="button-press-v3")
+    parser.add_argument("--strategies", nargs="+", default=["random", "disagreement", "entropy"],
+                        choices=["random", "disagreement", "entropy"])
+    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2, 3, 4])
+    parser.add_argument("--num-labels", type=int, default=30)
+    parser.add_argument("--initial", type=int, default=10)
+    parser.add_argument("--per-round", type=int, default=10)
+    parser.add_argument("--members", type=int, default=3)
+    parser.add_argument("--round-steps", type=int, default=300)
+    parser.add_argument("--steps", type=int, default=500)
+    parser.add_argument("--lr", type=float, default=1e-3)
+    parser.add_argument("--out-dir", default=str(ROOT / "bench" / "results"))
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    from torchrl_ftb.data.labels import ReturnTeacher
+    from torchrl_ftb.datasets import make_metaworld_dataset
+    from torchrl_ftb.preference import correlations
+    from torchrl_ftb.provenance import git_commit, machine_info, write_json
+
+    trajs, meta = make_metaworld_dataset(args.task, episodes_per_group=100, noise=1.0, seed=0, progress=False)
+    teacher = ReturnTeacher()
+    returns = teacher.returns(trajs)
+    group = torch.as_tensor(meta["per_trajectory"]["group"])  # expert / within-env / random / cross-env
+    out = Path(args.out_dir) / f"score_model_queries_{args.task}.json"
+    record = {"benchmark": "score_model_queries", "command": " ".join([sys.executable, *sys.argv]),
+              "config": dict(vars(args)), "commit": git_commit(), "machine": machine_info(),
+              "dataset_path": meta.get("path"), "teacher": teacher.name, "started": time.strftime("%Y-%m-%dT%H:%M:%S"),
+              "results": {}}
+    for strategy in args.strategies:
+        start, values, within = time.perf_counter(), [], []
+        for seed in args.seeds:
+            labels = choose_labels(trajs, teacher, strategy, seed=seed, args=args)
+            same = (group[labels["index0"]] == group[labels["index1"]]).sum().item()
+            scores = fit(trajs, labels, members=1, seed=seed, steps=args.steps, lr=args.lr)[0]
+            values.append(round(correlations(scores, returns)["spearman"], 4))
+            within.append(int(same))
+            print(f"{args.task} {strategy} seed {seed}: {values[-1]} ({same} within-group pairs)", flush=True)
+        mean = sum(values) / len(values)
+        record["results"][strategy] = {"spearman_return": values, "mean": round(mean, 4),
+                                       "within_group_pairs": within, "seconds": round(time.perf_counter() - start, 1)}
+        print(f"{args.task} {strategy}: {values} mean {mean:.3f}", flush=True)
+        record["finished"] = time.strftime("%Y-%m-%dT%H:%M:%S")
+        write_json(out, record)
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()
