@@ -15,7 +15,8 @@ budget, same teacher, same final model):
 
 The final score model is the recipe's ``cpu``-preset s_psi (normalised r_psi, 256x3, 500
 full-batch Adam steps at lr 1e-3) trained on the 30 chosen labels, so only the choice of pairs
-differs. Reports Spearman(s_psi, true return) over the whole dataset per label seed. Not a test.
+differs. The strategies are the library's ``torchrl_ftb.preference.make_query_labels`` (the
+recipes' ``labels.query``). Reports Spearman(s_psi, true return) over the whole dataset per label seed. Not a test.
 
     python bench/score_model_queries.py --task button-press-v3 --strategies random disagreement entropy
 
@@ -30,64 +31,21 @@ import time
 from pathlib import Path
 
 import torch
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDictBase
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 
-def label_pairs(trajs: TensorDictBase, index0: torch.Tensor, index1: torch.Tensor, teacher) -> TensorDict:
-    """A full-trajectory label set for the given pairs (the layout of ``make_scripted_labels``)."""
-    tau0, tau1 = trajs[index0], trajs[index1]
-    labels = TensorDict({"tau0": tau0, "tau1": tau1, "label": teacher(tau0, tau1).to(torch.float32),
-                         "index0": index0, "index1": index1}, [index0.shape[0]])
-    labels.set_non_tensor("teacher", teacher.name)
-    return labels
-
-
-def fit(trajs: TensorDictBase, labels: TensorDictBase, *, members: int, seed: int, steps: int, lr: float):
+def final_scores(trajs: TensorDictBase, labels: TensorDictBase, *, seed: int, steps: int, lr: float) -> torch.Tensor:
+    """Scores ``[N]`` of the recipe's score model (as ``stage_score_model``) trained on ``labels``."""
     from torchrl_ftb.preference import ScoreModel, score_trajectories, train_score_model
 
     pool = trajs.select("observation", "action", "mask")
-    model = ScoreModel(pool["observation"].shape[-1], pool["action"].shape[-1], num_members=members,
-                       seed=seed).fit_normalizer(pool)
+    model = ScoreModel(pool["observation"].shape[-1], pool["action"].shape[-1], seed=seed).fit_normalizer(pool)
     train_score_model(model, labels.select("tau0", "tau1", "label"), steps=steps, lr=lr, eval_fraction=0.0,
                       seed=seed, progress=False)
-    return score_trajectories(model, pool, members=True)  # [C, N]
-
-
-def next_queries(scores: torch.Tensor, asked: set, count: int, strategy: str) -> tuple[torch.Tensor, torch.Tensor]:
-    """The ``count`` unasked pairs (i < j) a model with member scores ``[C, N]`` is least sure of."""
-    n = scores.shape[1]
-    i, j = torch.triu_indices(n, n, offset=1)
-    prob = torch.sigmoid(scores[:, j] - scores[:, i])  # [C, P]
-    value = prob.std(0) if strategy == "disagreement" else -(prob.mean(0) - 0.5).abs()
-    if asked:
-        done = torch.tensor([a * n + b for a, b in asked])
-        value[torch.isin(i * n + j, done)] = -float("inf")
-    top = value.topk(count).indices
-    return i[top], j[top]
-
-
-def choose_labels(trajs, teacher, strategy: str, *, seed: int, args) -> TensorDict:
-    from torchrl_ftb.data.labels import make_scripted_labels
-
-    if strategy == "random":
-        return make_scripted_labels(trajs, num_pairs=args.num_labels, teacher=teacher, seed=seed)
-    labels = make_scripted_labels(trajs, num_pairs=args.initial, teacher=teacher, seed=seed)
-    members = args.members if strategy == "disagreement" else 1
-    round_ = 0
-    while labels.batch_size[0] < args.num_labels:
-        scores = fit(trajs, labels, members=members, seed=seed * 1000 + round_, steps=args.round_steps, lr=args.lr)
-        asked = {tuple(sorted((int(a), int(b)))) for a, b in zip(labels["index0"], labels["index1"])}
-        count = min(args.per_round, args.num_labels - labels.batch_size[0])
-        i0, i1 = next_queries(scores, asked, count, strategy)
-        new = label_pairs(trajs, i0, i1, teacher)
-        labels = torch.cat([labels.select("tau0", "tau1", "label", "index0", "index1"),
-                            new.select("tau0", "tau1", "label", "index0", "index1")], 0)
-        labels.set_non_tensor("teacher", teacher.name)
-        round_ += 1
-    return labels
+    return score_trajectories(model, pool)
 
 
 def main() -> None:
@@ -108,7 +66,7 @@ def main() -> None:
     torch.set_num_threads(1)
     from torchrl_ftb.data.labels import ReturnTeacher
     from torchrl_ftb.datasets import make_metaworld_dataset
-    from torchrl_ftb.preference import correlations
+    from torchrl_ftb.preference import correlations, make_query_labels
     from torchrl_ftb.provenance import git_commit, machine_info, write_json
 
     trajs, meta = make_metaworld_dataset(args.task, episodes_per_group=100, noise=1.0, seed=0, progress=False)
@@ -123,9 +81,11 @@ def main() -> None:
     for strategy in args.strategies:
         start, values, within = time.perf_counter(), [], []
         for seed in args.seeds:
-            labels = choose_labels(trajs, teacher, strategy, seed=seed, args=args)
+            labels = make_query_labels(trajs, num_pairs=args.num_labels, teacher=teacher, seed=seed,
+                                       strategy=strategy, initial=args.initial, per_round=args.per_round,
+                                       members=args.members, steps=args.round_steps, lr=args.lr)
             same = (group[labels["index0"]] == group[labels["index1"]]).sum().item()
-            scores = fit(trajs, labels, members=1, seed=seed, steps=args.steps, lr=args.lr)[0]
+            scores = final_scores(trajs, labels, seed=seed, steps=args.steps, lr=args.lr)
             values.append(round(correlations(scores, returns)["spearman"], 4))
             within.append(int(same))
             print(f"{args.task} {strategy} seed {seed}: {values[-1]} ({same} within-group pairs)", flush=True)

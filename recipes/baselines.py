@@ -34,6 +34,7 @@ from torchrl_ftb.augmentation import AUGMENTATIONS, build_supplement, merge_data
 from torchrl_ftb.baselines import METHODS, LABEL_METHODS, run_baseline
 from torchrl_ftb.data import atomic_torch_save, atomic_write_text
 from torchrl_ftb.data.labels import make_scripted_labels, make_teacher
+from torchrl_ftb.preference import QUERY_STRATEGIES, make_query_labels
 from torchrl_ftb.datasets import dataset_kwargs, make_dataset
 from torchrl_ftb.envs import check_env_matches, env_kind, make_env, normalized_score_fn, oracle_step, true_reward_fn
 from torchrl_ftb.policy import evaluate_policy
@@ -49,11 +50,22 @@ AUGMENTABLE = ("bc", "bc10", "td3bc", "iql")
 # ----
 
 
-def make_labels(cfg: DictConfig, trajs):
-    """Scripted labels exactly as FTB draws them (teacher, pairs, seed)."""
+def make_labels(cfg: DictConfig, trajs, *, device=None):
+    """Scripted labels exactly as FTB draws them (teacher, pairs, seed, ``labels.query``).
+
+    Methods that do not read labels get the uniform pairs whatever ``labels.query`` says (an
+    active query round trains score models they would never use).
+    """
     lab = cfg.labels
     teacher = make_teacher(str(lab.teacher), discount=float(lab.discount))
-    labels = make_scripted_labels(trajs, num_pairs=int(lab.num_pairs), teacher=teacher, seed=int(lab.seed))
+    if cfg.method not in LABEL_METHODS:
+        return make_scripted_labels(trajs, num_pairs=int(lab.num_pairs), teacher=teacher, seed=int(lab.seed)), teacher
+    sm_cfg = cfg.score_model
+    labels = make_query_labels(
+        trajs, num_pairs=int(lab.num_pairs), teacher=teacher, seed=int(lab.seed), **dict(lab.get("query") or {}),
+        model_kwargs={k: sm_cfg.get(k) for k in ("num_cells", "num_layers", "gamma", "reward_activation")},
+        normalize_observations=bool(sm_cfg.get("normalize_observations")), device=device,
+    )
     return labels, teacher
 
 
@@ -73,6 +85,9 @@ def check_config(cfg: DictConfig) -> None:
     if kind != "none" and cfg.method not in AUGMENTABLE:
         raise ValueError(f"augmentation.kind={kind!r} with method={cfg.method!r}: a supplement brings generated "
                          f"rewards, so only {list(AUGMENTABLE)} can use it")
+    strategy = (cfg.labels.get("query") or {}).get("strategy", "random")
+    if strategy not in QUERY_STRATEGIES:
+        raise ValueError(f"labels.query.strategy={strategy!r}: choose one of {list(QUERY_STRATEGIES)}")
     env_kind(cfg.env.name)
 
 
@@ -166,7 +181,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     eval_env = functools.partial(make_env, name, seed=int(cfg.eval.seed), toy_horizon=int(cfg.dataset.horizon),
                                  max_episode_steps=None if kind == "locomotion" else limit)  # locomotion: 1000
     check_env_matches(eval_env, trajs, name=name)
-    labels, teacher = make_labels(cfg, trajs)
+    labels, teacher = make_labels(cfg, trajs, device=device)
     data, augmentation = make_supplement(cfg, trajs, device=device, logger=logger)
     result = run_baseline(
         cfg.method, data, labels=labels, seed=int(cfg.seed),
@@ -200,7 +215,9 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         "method": cfg.method, "description": METHODS[cfg.method], "env": cfg.env.name, "seed": int(cfg.seed),
         "preset": cfg.preset, "score_name": score_name, "score": float(score), "eval": ev,
         "uses_labels": cfg.method in LABEL_METHODS,
-        "labels": {"num_pairs": int(labels.batch_size[0]), "teacher": teacher.name, "seed": int(cfg.labels.seed)},
+        "labels": {"num_pairs": int(labels.batch_size[0]), "teacher": teacher.name, "seed": int(cfg.labels.seed),
+                   "query": (cfg.labels.get("query") or {}).get("strategy", "random")
+                   if cfg.method in LABEL_METHODS else "random"},
         "dataset": {k: v for k, v in (meta or {}).items() if isinstance(v, (int, float, str, bool))},
         "augmentation": {"kind": "none"} if augmentation is None else _jsonable(augmentation),
         "train": _jsonable(result.info),

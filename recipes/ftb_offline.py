@@ -42,7 +42,7 @@ from tensordict import TensorDict
 
 from torchrl_ftb.analysis import novelty, plot_flow_curves, plot_histograms
 from torchrl_ftb.data import atomic_torch_save, atomic_write_text, read_checkpoint, trajectories_to_flat
-from torchrl_ftb.data.labels import load_labels, make_scripted_labels, make_teacher, save_labels, true_return
+from torchrl_ftb.data.labels import load_labels, make_teacher, save_labels, true_return
 from torchrl_ftb.datasets import dataset_kwargs, make_dataset
 from torchrl_ftb.diffusion import DiffusionSampler, load_diffuser, make_diffuser, run_settings, train_diffuser
 from torchrl_ftb.diffusion.train import CHECKPOINT_NAME
@@ -66,9 +66,11 @@ from torchrl_ftb.policy import (
 )
 from torchrl_ftb.preference import (
     ScoreModel,
+    QUERY_STRATEGIES,
     load_score_model,
     save_score_model,
     correlations,
+    make_query_labels,
     make_block_pair_buffer,
     make_blocks,
     score_trajectories,
@@ -423,6 +425,9 @@ def run(cfg: DictConfig) -> dict:
     kind = env_kind(cfg.env.name)
     if cfg.labels.teacher not in ("return", "success"):
         raise ValueError(f"labels.teacher={cfg.labels.teacher!r}: choose 'return' or 'success'")
+    query = dict(cfg.labels.get("query") or {})
+    if query.get("strategy", "random") not in QUERY_STRATEGIES:
+        raise ValueError(f"labels.query.strategy={query.get('strategy')!r}: choose one of {list(QUERY_STRATEGIES)}")
     if cfg.flow.get("max_frame_stack_error") is not None and kind != "metaworld":
         raise ValueError(f"flow.max_frame_stack_error is a Meta-World check (stacked previous frame); "
                          f"env.name={cfg.env.name!r} is {kind}: leave it null")
@@ -482,11 +487,15 @@ def run(cfg: DictConfig) -> dict:
     if run_dir.done("labels"):
         labels, _ = load_labels(label_dir)
     else:
-        labels = make_scripted_labels(trajs, num_pairs=int(cfg.labels.num_pairs), teacher=teacher,
-                                      seed=int(cfg.labels.seed))
-        save_labels(labels, label_dir, meta={"teacher": teacher.config()})
+        sm_cfg = cfg.score_model
+        labels = make_query_labels(
+            trajs, num_pairs=int(cfg.labels.num_pairs), teacher=teacher, seed=int(cfg.labels.seed), **query,
+            model_kwargs={k: sm_cfg.get(k) for k in ("num_cells", "num_layers", "gamma", "reward_activation")},
+            normalize_observations=bool(sm_cfg.get("normalize_observations")), device=device,
+        )
+        save_labels(labels, label_dir, meta={"teacher": teacher.config(), "query": query})
         run_dir.mark("labels", num_pairs=int(labels.batch_size[0]), teacher=teacher.name,
-                     ties=int((labels.get("label") == 0.5).sum()))
+                     query=query.get("strategy", "random"), ties=int((labels.get("label") == 0.5).sum()))
     timed("labels", t0)
     if (out := stopped("labels")) is not None:
         return out

@@ -167,13 +167,16 @@ def test_recipe_runs_resumes_and_checkpoint_loads(tmp_path):
     recipe = load_script(ROOT / "recipes" / "baselines.py", "recipe_baselines")
     overrides = ["env.name=toy", "method=bc10_score", "dataset.num_trajectories=24", "dataset.horizon=8",
                  "labels.num_pairs=6", "bc.steps=5", "score_model.steps=3", "score_model.num_cells=8",
-                 "bc.hidden=[8]", "eval.num_episodes=2", "progress=false", "logger.backend=csv"]
+                 "bc.hidden=[8]", "eval.num_episodes=2", "progress=false", "logger.backend=csv",
+                 "labels.query.strategy=disagreement", "labels.query.initial=3", "labels.query.per_round=2",
+                 "labels.query.steps=2"]
     with initialize_config_dir(config_dir=str(ROOT / "recipes" / "config"), version_base="1.3"):
         cfg = compose(config_name="baselines", overrides=overrides + [f"run_dir={tmp_path}"])
         bad = compose(config_name="baselines", overrides=overrides + ["method=cql", f"run_dir={tmp_path / 'bad'}"])
     metrics = recipe.run(cfg)
     saved = json.loads((tmp_path / "metrics.json").read_text())
     assert saved["score"] == metrics["score"] and saved["uses_labels"] and saved["labels"]["num_pairs"] == 6
+    assert saved["labels"]["query"] == "disagreement"
     assert saved["train"]["ranked_by"] == "learned score s_psi"
     ckpt = torch.load(tmp_path / "actor.pt", weights_only=True)
     assert ckpt["method"] == "bc10_score" and any(k.endswith("normalizer.loc") for k in ckpt["actor"])

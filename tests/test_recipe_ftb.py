@@ -135,6 +135,9 @@ def test_bad_config_is_a_clear_error(tmp_path):
     with pytest.raises(ValueError, match="max_frame_stack_error is a Meta-World check"):
         recipe.run(_cfg(tmp_path / "f", "flow.max_frame_stack_error=0.02"))
     assert not (tmp_path / "f").exists()  # refused before anything is written
+    with pytest.raises(ValueError, match=r"labels.query.strategy='margin': choose one of \['random'"):
+        recipe.run(_cfg(tmp_path / "g", "labels.query.strategy=margin"))
+    assert not (tmp_path / "g").exists()
     # a dataset whose dims do not match the env
     from torchrl_ftb.envs import check_env_matches
     from torchrl_ftb.testing import MetaWorldMockEnv, make_toy_dataset
@@ -144,6 +147,20 @@ def test_bad_config_is_a_clear_error(tmp_path):
     # a locomotion env without the dataset kind
     with pytest.raises(ValueError, match="kind="):
         recipe.run(_cfg(tmp_path / "d", "env.name=hopper"))
+
+
+def test_active_query_labels_stage(tmp_path):
+    """``labels.query.strategy=entropy``: the labels stage asks in rounds and records how."""
+    recipe = _recipe()
+    recipe.run(_cfg(tmp_path, "stop_after=labels", "labels.query.strategy=entropy", "labels.query.initial=10",
+                    "labels.query.per_round=10", "labels.query.steps=10"))
+    stages = json.loads((tmp_path / "stages.json").read_text())
+    assert stages["labels"]["query"] == "entropy" and stages["labels"]["num_pairs"] == 30
+    from torchrl_ftb.data.labels import load_labels
+
+    labels, meta = load_labels(tmp_path / "checkpoints" / "labels")
+    pairs = {tuple(sorted(p)) for p in zip(labels["index0"].tolist(), labels["index1"].tolist(), strict=True)}
+    assert len(pairs) == 30 and meta["query"]["strategy"] == "entropy"
 
 
 def test_stop_after_a_stage_then_resume_to_the_end(tmp_path):

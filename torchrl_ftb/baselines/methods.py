@@ -13,9 +13,10 @@ method         what it is
 ``td3bc``      TD3+BC (α = 2.5) on the true reward
 ``iql``        IQL (τ = 0.7, β = 3.0) on the true reward
 ``iql_rpsi``   IQL + r_ψ: IQL on the transition reward learned from the labels (one MLP)
-``oprl``       OPRL: IQL on the mean of an ensemble of learned rewards (Shin et al., 2022) —
-               the ensemble reward only; OPRL's active query selection is not used because
-               every method gets the same fixed labels
+``oprl``       OPRL: IQL on the mean of an ensemble of learned rewards (Shin et al., 2022);
+               its active query selection is the labels' choice, shared by every method
+               (``labels.query.strategy=disagreement`` in the recipes,
+               :func:`torchrl_ftb.preference.make_query_labels`)
 ``iql_zero``   IQL with zero reward (sanity check: what the BC-like part of IQL alone gives)
 ============== ==================================================================================
 

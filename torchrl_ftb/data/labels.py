@@ -64,6 +64,8 @@ __all__ = [
     "TEACHERS",
     "make_teacher",
     "make_scripted_labels",
+    "draw_pairs",
+    "label_pairs",
     "validate_labels",
     "check_labels_match",
     "load_pt_labels",
@@ -369,18 +371,15 @@ def make_scripted_labels(
                 "make_scripted_labels: a teacher with horizon= scores full trajectories, "
                 "not segments"
             )
-    # random.sample on a range draws without replacement in O(num_pairs) memory
-    rank = torch.tensor(random.Random(seed).sample(range(total), num_pairs), dtype=torch.int64)
-    i, j = _unrank_pairs(rank, n)
+    i, j = draw_pairs(n, num_pairs, seed=seed)
     gen = torch.Generator().manual_seed(seed)
     flip = torch.rand(num_pairs, generator=gen) < 0.5
     index0, index1 = torch.where(flip, j, i), torch.where(flip, i, j)
-    length = horizon if segment_length is None else segment_length
+    if segment_length is None:
+        return label_pairs(trajs, index0, index1, teacher=teacher)
     lengths = trajs.get("mask").sum(-1).cpu()
 
     def starts(index: torch.Tensor) -> torch.Tensor:
-        if segment_length is None:
-            return torch.zeros_like(index)
         high = (lengths[index] - segment_length).clamp(min=0)
         return (
             (torch.rand(index.shape[0], generator=gen, dtype=torch.float64) * (high + 1))
@@ -389,6 +388,72 @@ def make_scripted_labels(
         )
 
     start0, start1 = starts(index0), starts(index1)
+    return label_pairs(trajs, index0, index1, teacher=teacher, start0=start0, start1=start1,
+                       segment_length=segment_length)
+
+
+def draw_pairs(n: int, num_pairs: int, *, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """``num_pairs`` distinct unordered pairs ``(i, j), i < j`` of ``range(n)``, uniformly.
+
+    Drawn without replacement among the ``n(n-1)/2`` pairs in ``O(num_pairs)`` memory (the
+    pair draw of :func:`make_scripted_labels`; same seed, same pairs).
+
+    Example:
+        >>> i, j = draw_pairs(5, 3, seed=0)
+        >>> bool((i < j).all()), i.shape
+        (True, torch.Size([3]))
+    """
+    total = _num_pairs_total(n)
+    if not 0 <= num_pairs <= total:
+        raise ValueError(f"draw_pairs: asked for {num_pairs} pairs but {n} items have only {total} distinct pairs")
+    rank = torch.tensor(random.Random(seed).sample(range(total), num_pairs), dtype=torch.int64)
+    return _unrank_pairs(rank, n)
+
+
+def label_pairs(
+    trajs: TensorDictBase,
+    index0: torch.Tensor,
+    index1: torch.Tensor,
+    *,
+    teacher: ReturnTeacher,
+    start0: torch.Tensor | None = None,
+    start1: torch.Tensor | None = None,
+    segment_length: int | None = None,
+) -> TensorDict:
+    """Label given pairs of dataset trajectories (or segments) with a scripted teacher.
+
+    The one place a label set is assembled from indices: :func:`make_scripted_labels` (uniform
+    pairs) and :func:`torchrl_ftb.preference.make_query_labels` (actively chosen pairs) both
+    call it.
+
+    Args:
+        trajs: ``[N, H]`` trajectory batch with the keys the teacher needs.
+        index0, index1: ``[M]`` int64 trajectory indices of ``tau0`` / ``tau1``.
+        teacher: a scripted teacher; its ``name`` is stored.
+        start0, start1: ``[M]`` first steps of the segments (with ``segment_length``;
+            default: full trajectories, start 0).
+        segment_length: segment length ``L`` (``start + L <= H``); ``None``: full trajectories.
+
+    Returns:
+        Label set ``[M]`` (module docstring) with ``index0/1``, ``start0/1`` and ``teacher``.
+
+    Example:
+        >>> from torchrl_ftb.testing import make_toy_dataset
+        >>> trajs = make_toy_dataset(num_trajectories=6, horizon=8, seed=0)
+        >>> labels = label_pairs(trajs, torch.tensor([0, 2]), torch.tensor([1, 5]), teacher=ReturnTeacher())
+        >>> labels["tau1"].batch_size, labels["index1"].tolist()
+        (torch.Size([2, 8]), [1, 5])
+    """
+    index0, index1 = torch.as_tensor(index0, dtype=torch.int64).cpu(), torch.as_tensor(index1, dtype=torch.int64).cpu()
+    n, horizon = trajs.batch_size
+    if index0.shape != index1.shape or index0.ndim != 1:
+        raise ValueError(f"label_pairs: index0 and index1 must be [M] of one shape, got {list(index0.shape)} "
+                         f"and {list(index1.shape)}")
+    if index0.numel() and (min(index0.min(), index1.min()) < 0 or max(index0.max(), index1.max()) >= n):
+        raise ValueError(f"label_pairs: trajectory indices must be in [0, {n})")
+    length = horizon if segment_length is None else int(segment_length)
+    start0 = torch.zeros_like(index0) if start0 is None else torch.as_tensor(start0, dtype=torch.int64).cpu()
+    start1 = torch.zeros_like(index1) if start1 is None else torch.as_tensor(start1, dtype=torch.int64).cpu()
     tau0 = _segments(trajs, index0, start0, length)
     tau1 = _segments(trajs, index1, start1, length)
     labels = TensorDict(
@@ -401,7 +466,7 @@ def make_scripted_labels(
             "start0": start0,
             "start1": start1,
         },
-        batch_size=[num_pairs],
+        batch_size=[index0.shape[0]],
         device=trajs.device,
     )
     labels.set_non_tensor("teacher", teacher.name)

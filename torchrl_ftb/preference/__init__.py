@@ -20,6 +20,7 @@ from torchrl_ftb.preference.pairs import (
     make_labeled_pair_buffer,
     make_trajectory_buffer,
 )
+from torchrl_ftb.preference.queries import QUERY_STRATEGIES, make_query_labels, query_priority, select_queries
 from torchrl_ftb.preference.score import (
     NORMALIZED_SCORE_KEY,
     REWARD_ACTIVATIONS,
@@ -35,6 +36,7 @@ from torchrl_ftb.preference.train import split_labels, train_score_model
 
 __all__ = [
     "NORMALIZED_SCORE_KEY",
+    "QUERY_STRATEGIES",
     "REWARD_ACTIVATIONS",
     "BlockPairSampler",
     "BlockWarning",
@@ -47,14 +49,17 @@ __all__ = [
     "make_block_pair_buffer",
     "make_blocks",
     "make_labeled_pair_buffer",
+    "make_query_labels",
     "make_trajectory_buffer",
     "load_score_model",
     "pairwise_accuracy",
     "plot_preference_scatter",
     "preference_accuracy",
     "preference_metrics",
+    "query_priority",
     "save_score_model",
     "score_trajectories",
+    "select_queries",
     "normalized_scores",
     "with_normalized_scores",
     "split_labels",
