@@ -103,6 +103,7 @@ def select_queries(member_scores: torch.Tensor, *, count: int, strategy: str,
     else:
         priority = query_priority(member_scores, i, j, strategy=strategy)
     if asked is not None and asked.numel():
+        asked = asked.to(i.device)
         lo, hi = asked.min(-1).values, asked.max(-1).values
         priority = priority.masked_fill(torch.isin(i * n + j, lo * n + hi), -float("inf"))
     available = int(torch.isfinite(priority).sum())
@@ -151,7 +152,7 @@ def make_query_labels(
         members: ensemble size for ``"disagreement"`` (``>= 2``).
         steps, lr: training of each provisional model.
         model_kwargs: :class:`ScoreModel` keyword arguments (``num_cells``, ``num_layers``,
-            ``gamma``, ``reward_activation``).
+            ``gamma``, ``reward_activation``; ``None`` values mean the default).
         normalize_observations: fit the provisional models' observation normaliser on ``trajs``.
         device: where the provisional models train.
 
@@ -202,7 +203,7 @@ def _provisional_scores(pool: TensorDictBase, labels: TensorDictBase, *, members
                         device: torch.device | str | None) -> torch.Tensor:
     """``[C, N]`` member scores of a score model fitted to ``labels`` (one active round)."""
     model = ScoreModel(pool["observation"].shape[-1], pool["action"].shape[-1], num_members=members, seed=seed,
-                       device=device, **dict(model_kwargs or {}))
+                       device=device, **{k: v for k, v in (model_kwargs or {}).items() if v is not None})
     if normalize_observations:
         model.fit_normalizer(pool)
     train_score_model(model, labels.select("tau0", "tau1", "label"), steps=steps, lr=lr, eval_fraction=0.0,
