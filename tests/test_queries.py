@@ -50,6 +50,15 @@ def test_priorities_ask_about_the_uncertain_and_the_contested_pairs():
     assert (0, 1) not in list(zip(a.tolist(), b.tolist(), strict=True)) and bool((a < b).all())
     with pytest.raises(ValueError, match="only 5 candidates are left"):
         select_queries(scores, count=6, strategy="entropy", asked=torch.tensor([[0, 1]]))
+    # one trajectory the members disagree about would fill a whole batch; distinct pairs do not
+    contested = torch.stack([torch.arange(8.0), torch.arange(8.0)])
+    contested[1, 0] = 20.0
+    a, b = select_queries(contested, count=3, strategy="disagreement", distinct=False)
+    assert bool((a == 0).all())
+    a, b = select_queries(contested, count=3, strategy="disagreement")
+    assert len(set(a.tolist() + b.tolist())) == 6 and (a == 0).sum() == 1
+    a, b = select_queries(contested[:, :3], count=3, strategy="disagreement")  # no disjoint triple: filled
+    assert len(set(zip(a.tolist(), b.tolist(), strict=True))) == 3
     # capped candidates: a uniform subset is scored
     a, b = select_queries(torch.randn(1, 50), count=3, strategy="entropy", max_candidates=100)
     assert a.shape == (3,) and bool((a < b).all())

@@ -73,17 +73,23 @@ def query_priority(member_scores: torch.Tensor, index0: torch.Tensor, index1: to
 
 
 def select_queries(member_scores: torch.Tensor, *, count: int, strategy: str,
-                   asked: torch.Tensor | None = None, max_candidates: int = 200_000,
+                   asked: torch.Tensor | None = None, distinct: bool = True, max_candidates: int = 200_000,
                    seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
     """The ``count`` not-yet-asked pairs ``(i, j), i < j`` of highest :func:`query_priority`.
 
     Candidates are all ``N(N-1)/2`` pairs, or ``max_candidates`` uniform ones when there are more.
+    With ``distinct`` (default) the pairs of one call share no trajectory where the candidates
+    allow: taken greedily in priority order, a pair is skipped when one of its trajectories is
+    already in the batch (the best skipped pairs fill the batch when no disjoint one is left).
+    Without it, one trajectory the model is unsure about fills the whole batch (on sweep-into
+    every pair of a 10-pair round compared the same trajectory; BENCHMARKS #3).
 
     Args:
         member_scores: ``[C, N]`` member scores of every trajectory.
         count: pairs to return.
         strategy: see :func:`query_priority`; or ``"random"`` (uniform, the scores unused).
         asked: ``[A, 2]`` pairs already labelled (either order); never returned again.
+        distinct: no trajectory in two of the returned pairs (where the candidates allow).
         max_candidates: cap on the candidates scored.
         seed: seeds the candidate draw when capped, and ``"random"``.
 
@@ -106,11 +112,28 @@ def select_queries(member_scores: torch.Tensor, *, count: int, strategy: str,
         asked = asked.to(i.device)
         lo, hi = asked.min(-1).values, asked.max(-1).values
         priority = priority.masked_fill(torch.isin(i * n + j, lo * n + hi), -float("inf"))
-    available = int(torch.isfinite(priority).sum())
-    if count > available:
-        raise ValueError(f"select_queries: asked for {count} new pairs but only {available} candidates are left")
-    top = priority.topk(count).indices
-    return i[top], j[top]
+    order = priority.argsort(descending=True, stable=True)
+    order = order[torch.isfinite(priority[order])]
+    if count > order.numel():
+        raise ValueError(f"select_queries: asked for {count} new pairs but only {order.numel()} candidates are left")
+    top = _disjoint_first(i[order], j[order], count) if distinct else torch.arange(count)
+    return i[order[top]], j[order[top]]
+
+
+def _disjoint_first(i: torch.Tensor, j: torch.Tensor, count: int) -> torch.Tensor:
+    """Positions of ``count`` pairs, in priority order, greedily sharing no trajectory; when no
+    disjoint pair is left (small datasets), the best remaining pairs fill the batch."""
+    used: set[int] = set()
+    keep: list[int] = []
+    for pos, (a, b) in enumerate(zip(i.tolist(), j.tolist())):
+        if a not in used and b not in used:
+            used.update((a, b))
+            keep.append(pos)
+            if len(keep) == count:
+                return torch.tensor(keep, dtype=torch.int64)
+    chosen = set(keep)
+    keep += [pos for pos in range(i.numel()) if pos not in chosen][: count - len(keep)]
+    return torch.tensor(sorted(keep), dtype=torch.int64)
 
 
 def make_query_labels(
@@ -123,6 +146,7 @@ def make_query_labels(
     initial: int = 10,
     per_round: int = 10,
     members: int = 3,
+    distinct: bool = True,
     steps: int = 300,
     lr: float = 1e-3,
     model_kwargs: Mapping[str, Any] | None = None,
@@ -150,6 +174,7 @@ def make_query_labels(
         initial: uniform pairs before the first round (``>= 2``).
         per_round: pairs added per round.
         members: ensemble size for ``"disagreement"`` (``>= 2``).
+        distinct: a round's pairs share no trajectory (:func:`select_queries`).
         steps, lr: training of each provisional model.
         model_kwargs: :class:`ScoreModel` keyword arguments (``num_cells``, ``num_layers``,
             ``gamma``, ``reward_activation``; ``None`` values mean the default).
@@ -187,9 +212,11 @@ def make_query_labels(
             scores = _provisional_scores(pool, labels, members=members if strategy == "disagreement" else 1,
                                          seed=round_seed, steps=steps, lr=lr, model_kwargs=model_kwargs,
                                          normalize_observations=normalize_observations, device=device)
-            i, j = select_queries(scores, count=count, strategy=strategy, asked=asked, seed=round_seed)
+            i, j = select_queries(scores, count=count, strategy=strategy, asked=asked, distinct=distinct,
+                                  seed=round_seed)
         else:  # only ties so far: no preference to fit, ask uniformly
-            i, j = select_queries(torch.zeros(1, n), count=count, strategy="random", asked=asked, seed=round_seed)
+            i, j = select_queries(torch.zeros(1, n), count=count, strategy="random", asked=asked, distinct=distinct,
+                                  seed=round_seed)
         # tau0 = the lower index (the Bradley-Terry loss is symmetric in the two sides)
         new = label_pairs(trajs, i, j, teacher=teacher)
         labels = torch.cat([labels, new.select(*_LABEL_KEYS)], 0)
