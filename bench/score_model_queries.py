@@ -9,7 +9,8 @@ budget, same teacher, same final model):
 * ``random``       -- 30 uniform pairs (the recipe's labels, ``make_scripted_labels``);
 * ``disagreement`` -- ``--initial`` uniform pairs, then rounds of ``--per-round`` pairs with the
   largest std over a ``--members``-member ensemble of ``P(tau1 > tau0)`` among all pairs of the
-  dataset (the ensemble retrained on every round's labels);
+  dataset (the ensemble retrained on every round's labels), no trajectory in two pairs of a round
+  (``--no-distinct``: pure top-k);
 * ``entropy``      -- the same rounds with one model: the pairs whose ``P(tau1 > tau0)`` is
   closest to 0.5.
 
@@ -59,6 +60,9 @@ def main() -> None:
     parser.add_argument("--per-round", type=int, default=10)
     parser.add_argument("--members", type=int, default=3)
     parser.add_argument("--round-steps", type=int, default=300)
+    parser.add_argument("--no-distinct", dest="distinct", action="store_false",
+                        help="let one trajectory appear in several pairs of a round (pure top-k; the "
+                             "score_model_queries_nodistinct/ results, made before the option existed)")
     parser.add_argument("--steps", type=int, default=500)
     parser.add_argument("--lr", type=float, default=1e-3)
     parser.add_argument("--out-dir", default=str(ROOT / "bench" / "results"))
@@ -83,7 +87,8 @@ def main() -> None:
         for seed in args.seeds:
             labels = make_query_labels(trajs, num_pairs=args.num_labels, teacher=teacher, seed=seed,
                                        strategy=strategy, initial=args.initial, per_round=args.per_round,
-                                       members=args.members, steps=args.round_steps, lr=args.lr)
+                                       members=args.members, distinct=args.distinct, steps=args.round_steps,
+                                       lr=args.lr)
             same = (group[labels["index0"]] == group[labels["index1"]]).sum().item()
             scores = final_scores(trajs, labels, seed=seed, steps=args.steps, lr=args.lr)
             values.append(round(correlations(scores, returns)["spearman"], 4))
