@@ -20,6 +20,7 @@ differs. The strategies are the library's ``torchrl_ftb.preference.make_query_la
 recipes' ``labels.query``). Reports Spearman(s_psi, true return) over the whole dataset per label seed. Not a test.
 
     python bench/score_model_queries.py --task button-press-v3 --strategies random disagreement entropy
+    python bench/score_model_queries.py --summary     # the Markdown table of the committed results
 
 Writes bench/results/score_model_queries_<task>.json (command, config, commit, machine,
 results), rewritten after every strategy.
@@ -49,6 +50,34 @@ def final_scores(trajs: TensorDictBase, labels: TensorDictBase, *, seed: int, st
     return score_trajectories(model, pool)
 
 
+def summary(results_dir: Path) -> str:
+    """Markdown table of every ``score_model_queries_<task>.json`` in ``results_dir`` (a strategy
+    missing there is taken from ``score_model_queries_nodistinct/``, marked ``*``: ``random`` has no
+    rounds, so it is the same there)."""
+    import json
+
+    def cell(res: dict | None, mark: str = "") -> str:
+        if res is None:
+            return "—"
+        seeds = " / ".join(f"{v:.2f}" for v in res["spearman_return"])
+        return f"**{res['mean']:.3f}**{mark} ({seeds})" if res["mean"] >= 0.8 else f"{res['mean']:.3f}{mark} ({seeds})"
+
+    rows = ["| task | random (the paper) | entropy | disagreement |", "|---|---|---|---|"]
+    for path in sorted(results_dir.glob("score_model_queries_*.json")):
+        task = path.stem.removeprefix("score_model_queries_")
+        results = json.loads(path.read_text())["results"]
+        old = results_dir / "score_model_queries_nodistinct" / path.name
+        old_results = json.loads(old.read_text())["results"] if old.exists() else {}
+        row = []
+        for strategy in ("random", "entropy", "disagreement"):
+            if strategy in results:
+                row.append(cell(results[strategy]))
+            else:
+                row.append(cell(old_results.get(strategy) if strategy == "random" else None, "*"))
+        rows.append(f"| {task} | " + " | ".join(row) + " |")
+    return "\n".join(rows)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--task", default="button-press-v3")
@@ -66,7 +95,11 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=500)
     parser.add_argument("--lr", type=float, default=1e-3)
     parser.add_argument("--out-dir", default=str(ROOT / "bench" / "results"))
+    parser.add_argument("--summary", action="store_true", help="print the Markdown table of --out-dir and exit")
     args = parser.parse_args()
+    if args.summary:
+        print(summary(Path(args.out_dir)))
+        return
     torch.set_num_threads(1)
     from torchrl_ftb.data.labels import ReturnTeacher
     from torchrl_ftb.datasets import make_metaworld_dataset

@@ -120,3 +120,19 @@ def test_bad_query_options_are_clear_errors(trajs):
         make_query_labels(trajs, **base, strategy="entropy", initial=1)
     with pytest.raises(ValueError, match="only 190 distinct pairs"):
         make_query_labels(trajs, num_pairs=191, teacher=ReturnTeacher(), seed=0, strategy="entropy")
+
+
+def test_bench_summary_marks_rows_taken_from_the_first_run(tmp_path):
+    import json
+    from pathlib import Path
+
+    from torchrl_ftb.testing import load_script
+
+    bench = load_script(Path(__file__).resolve().parents[1] / "bench" / "score_model_queries.py", "bench_queries")
+    (tmp_path / "score_model_queries_nodistinct").mkdir()
+    res = lambda *v: {"spearman_return": list(v), "mean": sum(v) / len(v)}  # noqa: E731
+    (tmp_path / "score_model_queries_t.json").write_text(json.dumps({"results": {"entropy": res(0.9, 0.8)}}))
+    (tmp_path / "score_model_queries_nodistinct" / "score_model_queries_t.json").write_text(
+        json.dumps({"results": {"random": res(0.5, 0.7), "entropy": res(0.1, 0.1)}}))
+    table = bench.summary(tmp_path)
+    assert "| t | 0.600* (0.50 / 0.70) | **0.850** (0.90 / 0.80) | — |" in table
