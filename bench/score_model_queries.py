@@ -60,7 +60,8 @@ def summary(results_dir: Path) -> str:
         if res is None:
             return "—"
         seeds = " / ".join(f"{v:.2f}" for v in res["spearman_return"])
-        return f"**{res['mean']:.3f}**{mark} ({seeds})" if res["mean"] >= 0.8 else f"{res['mean']:.3f}{mark} ({seeds})"
+        mean = f"{res['mean']:.4f}"  # 4 decimals: 0.7999 is not 0.800
+        return f"**{mean}**{mark} ({seeds})" if res["mean"] >= 0.8 else f"{mean}{mark} ({seeds})"
 
     rows = ["| task | random (the paper) | entropy | disagreement |", "|---|---|---|---|"]
     for path in sorted(results_dir.glob("score_model_queries_*.json")):

@@ -135,4 +135,4 @@ def test_bench_summary_marks_rows_taken_from_the_first_run(tmp_path):
     (tmp_path / "score_model_queries_nodistinct" / "score_model_queries_t.json").write_text(
         json.dumps({"results": {"random": res(0.5, 0.7), "entropy": res(0.1, 0.1)}}))
     table = bench.summary(tmp_path)
-    assert "| t | 0.600* (0.50 / 0.70) | **0.850** (0.90 / 0.80) | — |" in table
+    assert "| t | 0.6000* (0.50 / 0.70) | **0.8500** (0.90 / 0.80) | — |" in table
