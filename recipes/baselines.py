@@ -50,6 +50,11 @@ AUGMENTABLE = ("bc", "bc10", "td3bc", "iql")
 # ----
 
 
+def query_strategy(cfg: DictConfig) -> str:
+    """``labels.query.strategy`` (``"random"`` for configs written before the option existed)."""
+    return (cfg.labels.get("query") or {}).get("strategy", "random")
+
+
 def make_labels(cfg: DictConfig, trajs, *, device=None):
     """Scripted labels exactly as FTB draws them (teacher, pairs, seed, ``labels.query``).
 
@@ -85,7 +90,7 @@ def check_config(cfg: DictConfig) -> None:
     if kind != "none" and cfg.method not in AUGMENTABLE:
         raise ValueError(f"augmentation.kind={kind!r} with method={cfg.method!r}: a supplement brings generated "
                          f"rewards, so only {list(AUGMENTABLE)} can use it")
-    strategy = (cfg.labels.get("query") or {}).get("strategy", "random")
+    strategy = query_strategy(cfg)
     if strategy not in QUERY_STRATEGIES:
         raise ValueError(f"labels.query.strategy={strategy!r}: choose one of {list(QUERY_STRATEGIES)}")
     env_kind(cfg.env.name)
@@ -216,8 +221,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         "preset": cfg.preset, "score_name": score_name, "score": float(score), "eval": ev,
         "uses_labels": cfg.method in LABEL_METHODS,
         "labels": {"num_pairs": int(labels.batch_size[0]), "teacher": teacher.name, "seed": int(cfg.labels.seed),
-                   "query": (cfg.labels.get("query") or {}).get("strategy", "random")
-                   if cfg.method in LABEL_METHODS else "random"},
+                   "query": query_strategy(cfg) if cfg.method in LABEL_METHODS else "random"},
         "dataset": {k: v for k, v in (meta or {}).items() if isinstance(v, (int, float, str, bool))},
         "augmentation": {"kind": "none"} if augmentation is None else _jsonable(augmentation),
         "train": _jsonable(result.info),
