@@ -23,11 +23,15 @@ recipes' ``labels.query``). Reports Spearman(s_psi, true return) over the whole 
     python bench/score_model_queries.py --summary     # the Markdown table of the committed results
 
 Writes bench/results/score_model_queries_<task>.json (command, config, commit, machine,
-results), rewritten after every strategy.
+results), rewritten after every strategy; results already in the file for other keys are kept (each
+result records the command, commit and machine that made it).
+
+    python bench/score_model_queries.py --task plate-slide-v3 --strategies disagreement --final-members 1 3
 """
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
@@ -39,23 +43,43 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 
-def final_scores(trajs: TensorDictBase, labels: TensorDictBase, *, seed: int, steps: int, lr: float) -> torch.Tensor:
-    """Scores ``[N]`` of the recipe's score model (as ``stage_score_model``) trained on ``labels``."""
+def final_scores(trajs: TensorDictBase, labels: TensorDictBase, *, seed: int, steps: int, lr: float,
+                 members: int = 1) -> torch.Tensor:
+    """Scores ``[N]`` of the recipe's score model (as ``stage_score_model``, ``score_model.num_members=members``)
+    trained on ``labels``."""
     from torchrl_ftb.preference import ScoreModel, score_trajectories, train_score_model
 
     pool = trajs.select("observation", "action", "mask")
-    model = ScoreModel(pool["observation"].shape[-1], pool["action"].shape[-1], seed=seed).fit_normalizer(pool)
+    model = ScoreModel(pool["observation"].shape[-1], pool["action"].shape[-1], num_members=members,
+                       seed=seed).fit_normalizer(pool)
     train_score_model(model, labels.select("tau0", "tau1", "label"), steps=steps, lr=lr, eval_fraction=0.0,
                       seed=seed, progress=False)
     return score_trajectories(model, pool)
 
 
-def summary(results_dir: Path) -> str:
-    """Markdown table of every ``score_model_queries_<task>.json`` in ``results_dir`` (a strategy
-    missing there is taken from ``score_model_queries_nodistinct/``, marked ``*``: ``random`` has no
-    rounds, so it is the same there)."""
-    import json
+def result_key(strategy: str, final_members: int) -> str:
+    """``"disagreement"`` for the recipe's one-member s_psi, ``"disagreement+ens3"`` for a 3-member final s_psi."""
+    return strategy if final_members == 1 else f"{strategy}+ens{final_members}"
 
+
+def earlier_results(path: Path) -> dict:
+    """The results already in ``path`` (``{}`` if none), each stamped with the command, commit and
+    machine of the file that holds it if it does not carry its own (files written before results
+    were merged), so a later run that rewrites the file's top level keeps their provenance."""
+    if not path.exists():
+        return {}
+    record = json.loads(path.read_text())
+    results = record["results"]
+    for res in results.values():
+        for field in ("command", "commit", "machine"):
+            res.setdefault(field, record.get(field))
+    return results
+
+
+def summary(results_dir: Path) -> str:
+    """Markdown table of every ``score_model_queries_<task>.json`` in ``results_dir``, a column per
+    result key found (a ``random`` missing there is taken from ``score_model_queries_nodistinct/``,
+    marked ``*``: ``random`` has no rounds, so it is the same there)."""
     def cell(res: dict | None, mark: str = "") -> str:
         if res is None:
             return "—"
@@ -63,18 +87,22 @@ def summary(results_dir: Path) -> str:
         mean = f"{res['mean']:.4f}"  # 4 decimals: 0.7999 is not 0.800
         return f"**{mean}**{mark} ({seeds})" if res["mean"] >= 0.8 else f"{mean}{mark} ({seeds})"
 
-    rows = ["| task | random (the paper) | entropy | disagreement |", "|---|---|---|---|"]
-    for path in sorted(results_dir.glob("score_model_queries_*.json")):
+    paths = sorted(results_dir.glob("score_model_queries_*.json"))
+    files = {path: json.loads(path.read_text())["results"] for path in paths}
+    keys = ["random", "entropy", "disagreement"]
+    keys += sorted({key for results in files.values() for key in results} - set(keys))
+    rows = ["| task | " + " | ".join(k + " (the paper)" if k == "random" else k for k in keys) + " |",
+            "|---" * (len(keys) + 1) + "|"]
+    for path, results in files.items():
         task = path.stem.removeprefix("score_model_queries_")
-        results = json.loads(path.read_text())["results"]
         old = results_dir / "score_model_queries_nodistinct" / path.name
         old_results = json.loads(old.read_text())["results"] if old.exists() else {}
         row = []
-        for strategy in ("random", "entropy", "disagreement"):
-            if strategy in results:
-                row.append(cell(results[strategy]))
+        for key in keys:
+            if key in results:
+                row.append(cell(results[key]))
             else:
-                row.append(cell(old_results.get(strategy) if strategy == "random" else None, "*"))
+                row.append(cell(old_results.get(key) if key == "random" else None, "*"))
         rows.append(f"| {task} | " + " | ".join(row) + " |")
     return "\n".join(rows)
 
@@ -93,6 +121,10 @@ def main() -> None:
     parser.add_argument("--no-distinct", dest="distinct", action="store_false",
                         help="let one trajectory appear in several pairs of a round (pure top-k; the "
                              "score_model_queries_nodistinct/ results, made before the option existed)")
+    parser.add_argument("--final-members", nargs="+", type=int, default=[1],
+                        help="ensemble sizes of the final s_psi, each trained on the same label sets "
+                             "(1: the recipe's default; 3: score_model.num_members=3); results key "
+                             "'<strategy>' for 1, '<strategy>+ens<m>' otherwise")
     parser.add_argument("--steps", type=int, default=500)
     parser.add_argument("--lr", type=float, default=1e-3)
     parser.add_argument("--out-dir", default=str(ROOT / "bench" / "results"))
@@ -112,26 +144,34 @@ def main() -> None:
     returns = teacher.returns(trajs)
     group = torch.as_tensor(meta["per_trajectory"]["group"])  # expert / within-env / random / cross-env
     out = Path(args.out_dir) / f"score_model_queries_{args.task}.json"
-    record = {"benchmark": "score_model_queries", "command": " ".join([sys.executable, *sys.argv]),
-              "config": dict(vars(args)), "commit": git_commit(), "machine": machine_info(),
-              "dataset_path": meta.get("path"), "teacher": teacher.name, "started": time.strftime("%Y-%m-%dT%H:%M:%S"),
-              "results": {}}
+    command = " ".join([sys.executable, *sys.argv])
+    # merged into the file: each result keeps the command, commit and machine that made it
+    results = earlier_results(out)
+    record = {"benchmark": "score_model_queries", "command": command, "config": dict(vars(args)),
+              "commit": git_commit(), "machine": machine_info(), "dataset_path": meta.get("path"),
+              "teacher": teacher.name, "started": time.strftime("%Y-%m-%dT%H:%M:%S"), "results": results}
     for strategy in args.strategies:
-        start, values, within = time.perf_counter(), [], []
+        start, within = time.perf_counter(), []
+        values = {m: [] for m in args.final_members}
         for seed in args.seeds:
             labels = make_query_labels(trajs, num_pairs=args.num_labels, teacher=teacher, seed=seed,
                                        strategy=strategy, initial=args.initial, per_round=args.per_round,
                                        members=args.members, distinct=args.distinct, steps=args.round_steps,
                                        lr=args.lr)
             same = (group[labels["index0"]] == group[labels["index1"]]).sum().item()
-            scores = final_scores(trajs, labels, seed=seed, steps=args.steps, lr=args.lr)
-            values.append(round(correlations(scores, returns)["spearman"], 4))
             within.append(int(same))
-            print(f"{args.task} {strategy} seed {seed}: {values[-1]} ({same} within-group pairs)", flush=True)
-        mean = sum(values) / len(values)
-        record["results"][strategy] = {"spearman_return": values, "mean": round(mean, 4),
-                                       "within_group_pairs": within, "seconds": round(time.perf_counter() - start, 1)}
-        print(f"{args.task} {strategy}: {values} mean {mean:.3f}", flush=True)
+            for m in args.final_members:
+                scores = final_scores(trajs, labels, seed=seed, steps=args.steps, lr=args.lr, members=m)
+                values[m].append(round(correlations(scores, returns)["spearman"], 4))
+                print(f"{args.task} {result_key(strategy, m)} seed {seed}: {values[m][-1]} "
+                      f"({same} within-group pairs)", flush=True)
+        for m, vals in values.items():
+            mean = sum(vals) / len(vals)
+            results[result_key(strategy, m)] = {
+                "spearman_return": vals, "seeds": list(args.seeds), "mean": round(mean, 4), "within_group_pairs": within,
+                "final_members": m, "seconds": round(time.perf_counter() - start, 1), "command": command,
+                "commit": record["commit"], "machine": record["machine"]}
+            print(f"{args.task} {result_key(strategy, m)}: {vals} mean {mean:.3f}", flush=True)
         record["finished"] = time.strftime("%Y-%m-%dT%H:%M:%S")
         write_json(out, record)
     print(f"wrote {out}")

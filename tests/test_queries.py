@@ -136,3 +136,38 @@ def test_bench_summary_marks_rows_taken_from_the_first_run(tmp_path):
         json.dumps({"results": {"random": res(0.5, 0.7), "entropy": res(0.1, 0.1)}}))
     table = bench.summary(tmp_path)
     assert "| t | 0.6000* (0.50 / 0.70) | **0.8500** (0.90 / 0.80) | — |" in table
+
+
+def test_bench_summary_adds_a_column_per_final_ensemble(tmp_path):
+    import json
+    from pathlib import Path
+
+    from torchrl_ftb.testing import load_script
+
+    bench = load_script(Path(__file__).resolve().parents[1] / "bench" / "score_model_queries.py", "bench_queries")
+    assert bench.result_key("disagreement", 1) == "disagreement"
+    assert bench.result_key("disagreement", 3) == "disagreement+ens3"
+    res = lambda *v: {"spearman_return": list(v), "mean": sum(v) / len(v)}  # noqa: E731
+    (tmp_path / "score_model_queries_a.json").write_text(json.dumps({"results": {"random": res(0.5, 0.5)}}))
+    (tmp_path / "score_model_queries_b.json").write_text(
+        json.dumps({"results": {"random": res(0.7, 0.7), "disagreement+ens3": res(0.8, 0.9)}}))
+    table = bench.summary(tmp_path).splitlines()
+    assert table[0] == "| task | random (the paper) | entropy | disagreement | disagreement+ens3 |"
+    assert table[2] == "| a | 0.5000 (0.50 / 0.50) | — | — | — |"
+    assert table[3] == "| b | 0.7000 (0.70 / 0.70) | — | — | **0.8500** (0.80 / 0.90) |"
+
+
+def test_bench_keeps_the_provenance_of_earlier_results(tmp_path):
+    import json
+    from pathlib import Path
+
+    from torchrl_ftb.testing import load_script
+
+    bench = load_script(Path(__file__).resolve().parents[1] / "bench" / "score_model_queries.py", "bench_queries")
+    assert bench.earlier_results(tmp_path / "none.json") == {}
+    path = tmp_path / "score_model_queries_t.json"
+    path.write_text(json.dumps({"command": "old", "commit": "abc", "machine": {"cpu": "x"}, "results": {
+        "entropy": {"mean": 0.5}, "disagreement": {"mean": 0.6, "command": "new", "commit": "def", "machine": {}}}}))
+    results = bench.earlier_results(path)
+    assert results["entropy"] == {"mean": 0.5, "command": "old", "commit": "abc", "machine": {"cpu": "x"}}
+    assert results["disagreement"]["command"] == "new"
