@@ -57,9 +57,11 @@ def final_scores(trajs: TensorDictBase, labels: TensorDictBase, *, seed: int, st
     return score_trajectories(model, pool)
 
 
-def result_key(strategy: str, final_members: int) -> str:
-    """``"disagreement"`` for the recipe's one-member s_psi, ``"disagreement+ens3"`` for a 3-member final s_psi."""
-    return strategy if final_members == 1 else f"{strategy}+ens{final_members}"
+def result_key(strategy: str, final_members: int, *, per_round: int = 10) -> str:
+    """``"disagreement"`` for the recipe's one-member s_psi and rounds of 10, ``"disagreement+ens3"`` for a
+    3-member final s_psi, ``"disagreement-r5"`` for rounds of 5 pairs (``random`` has no rounds)."""
+    key = strategy if per_round == 10 or strategy == "random" else f"{strategy}-r{per_round}"
+    return key if final_members == 1 else f"{key}+ens{final_members}"
 
 
 def earlier_results(path: Path) -> dict:
@@ -124,7 +126,8 @@ def main() -> None:
     parser.add_argument("--final-members", nargs="+", type=int, default=[1],
                         help="ensemble sizes of the final s_psi, each trained on the same label sets "
                              "(1: the recipe's default; 3: score_model.num_members=3); results key "
-                             "'<strategy>' for 1, '<strategy>+ens<m>' otherwise")
+                             "'<strategy>' for 1, '<strategy>+ens<m>' otherwise ('-r<n>' after the strategy when "
+                             "--per-round is not 10)")
     parser.add_argument("--steps", type=int, default=500)
     parser.add_argument("--lr", type=float, default=1e-3)
     parser.add_argument("--out-dir", default=str(ROOT / "bench" / "results"))
@@ -163,15 +166,15 @@ def main() -> None:
             for m in args.final_members:
                 scores = final_scores(trajs, labels, seed=seed, steps=args.steps, lr=args.lr, members=m)
                 values[m].append(round(correlations(scores, returns)["spearman"], 4))
-                print(f"{args.task} {result_key(strategy, m)} seed {seed}: {values[m][-1]} "
+                print(f"{args.task} {result_key(strategy, m, per_round=args.per_round)} seed {seed}: {values[m][-1]} "
                       f"({same} within-group pairs)", flush=True)
         for m, vals in values.items():
             mean = sum(vals) / len(vals)
-            results[result_key(strategy, m)] = {
+            results[result_key(strategy, m, per_round=args.per_round)] = {
                 "spearman_return": vals, "seeds": list(args.seeds), "mean": round(mean, 4), "within_group_pairs": within,
-                "final_members": m, "seconds": round(time.perf_counter() - start, 1), "command": command,
+                "final_members": m, "per_round": args.per_round, "seconds": round(time.perf_counter() - start, 1), "command": command,
                 "commit": record["commit"], "machine": record["machine"]}
-            print(f"{args.task} {result_key(strategy, m)}: {vals} mean {mean:.3f}", flush=True)
+            print(f"{args.task} {result_key(strategy, m, per_round=args.per_round)}: {vals} mean {mean:.3f}", flush=True)
         record["finished"] = time.strftime("%Y-%m-%dT%H:%M:%S")
         write_json(out, record)
     print(f"wrote {out}")

@@ -147,6 +147,9 @@ def test_bench_summary_adds_a_column_per_final_ensemble(tmp_path):
     bench = load_script(Path(__file__).resolve().parents[1] / "bench" / "score_model_queries.py", "bench_queries")
     assert bench.result_key("disagreement", 1) == "disagreement"
     assert bench.result_key("disagreement", 3) == "disagreement+ens3"
+    assert bench.result_key("disagreement", 1, per_round=5) == "disagreement-r5"
+    assert bench.result_key("disagreement", 3, per_round=5) == "disagreement-r5+ens3"
+    assert bench.result_key("random", 1, per_round=5) == "random"
     res = lambda *v: {"spearman_return": list(v), "mean": sum(v) / len(v)}  # noqa: E731
     (tmp_path / "score_model_queries_a.json").write_text(json.dumps({"results": {"random": res(0.5, 0.5)}}))
     (tmp_path / "score_model_queries_b.json").write_text(
