@@ -57,10 +57,15 @@ def final_scores(trajs: TensorDictBase, labels: TensorDictBase, *, seed: int, st
     return score_trajectories(model, pool)
 
 
-def result_key(strategy: str, final_members: int, *, per_round: int = 10) -> str:
-    """``"disagreement"`` for the recipe's one-member s_psi and rounds of 10, ``"disagreement+ens3"`` for a
-    3-member final s_psi, ``"disagreement-r5"`` for rounds of 5 pairs (``random`` has no rounds)."""
+def result_key(strategy: str, final_members: int, *, per_round: int = 10, steps: int = 500,
+               lr: float = 1e-3) -> str:
+    """``"disagreement"`` for the recipe's ``cpu``-preset one-member s_psi (500 steps at lr 1e-3) and rounds
+    of 10, ``"disagreement+ens3"`` for a 3-member final s_psi, ``"disagreement-r5"`` for rounds of 5 pairs
+    (``random`` has no rounds), ``"disagreement@s1500-lr0.0001"`` for a final s_psi trained otherwise
+    (here the ``paper`` preset's)."""
     key = strategy if per_round == 10 or strategy == "random" else f"{strategy}-r{per_round}"
+    if (steps, lr) != (500, 1e-3):
+        key = f"{key}@s{steps}-lr{lr:g}"
     return key if final_members == 1 else f"{key}+ens{final_members}"
 
 
@@ -128,8 +133,11 @@ def main() -> None:
                              "(1: the recipe's default; 3: score_model.num_members=3); results key "
                              "'<strategy>' for 1, '<strategy>+ens<m>' otherwise ('-r<n>' after the strategy when "
                              "--per-round is not 10)")
-    parser.add_argument("--steps", type=int, default=500)
-    parser.add_argument("--lr", type=float, default=1e-3)
+    parser.add_argument("--steps", type=int, default=500, help="final s_psi: full-batch Adam steps "
+                        "(500: the recipe's cpu preset, 1500: its paper preset)")
+    parser.add_argument("--lr", type=float, default=1e-3, help="final s_psi: Adam lr (1e-3 cpu, 1e-4 paper)")
+    parser.add_argument("--round-lr", type=float, default=1e-3,
+                        help="provisional models of the query rounds: Adam lr (the recipe's labels.query.lr)")
     parser.add_argument("--out-dir", default=str(ROOT / "bench" / "results"))
     parser.add_argument("--summary", action="store_true", help="print the Markdown table of --out-dir and exit")
     args = parser.parse_args()
@@ -153,6 +161,7 @@ def main() -> None:
     record = {"benchmark": "score_model_queries", "command": command, "config": dict(vars(args)),
               "commit": git_commit(), "machine": machine_info(), "dataset_path": meta.get("path"),
               "teacher": teacher.name, "started": time.strftime("%Y-%m-%dT%H:%M:%S"), "results": results}
+    key_options = {"per_round": args.per_round, "steps": args.steps, "lr": args.lr}
     for strategy in args.strategies:
         start, within = time.perf_counter(), []
         values = {m: [] for m in args.final_members}
@@ -160,21 +169,21 @@ def main() -> None:
             labels = make_query_labels(trajs, num_pairs=args.num_labels, teacher=teacher, seed=seed,
                                        strategy=strategy, initial=args.initial, per_round=args.per_round,
                                        members=args.members, distinct=args.distinct, steps=args.round_steps,
-                                       lr=args.lr)
+                                       lr=args.round_lr)
             same = (group[labels["index0"]] == group[labels["index1"]]).sum().item()
             within.append(int(same))
             for m in args.final_members:
                 scores = final_scores(trajs, labels, seed=seed, steps=args.steps, lr=args.lr, members=m)
                 values[m].append(round(correlations(scores, returns)["spearman"], 4))
-                print(f"{args.task} {result_key(strategy, m, per_round=args.per_round)} seed {seed}: {values[m][-1]} "
+                print(f"{args.task} {result_key(strategy, m, **key_options)} seed {seed}: {values[m][-1]} "
                       f"({same} within-group pairs)", flush=True)
         for m, vals in values.items():
             mean = sum(vals) / len(vals)
-            results[result_key(strategy, m, per_round=args.per_round)] = {
+            results[result_key(strategy, m, **key_options)] = {
                 "spearman_return": vals, "seeds": list(args.seeds), "mean": round(mean, 4), "within_group_pairs": within,
-                "final_members": m, "per_round": args.per_round, "seconds": round(time.perf_counter() - start, 1), "command": command,
+                "final_members": m, "per_round": args.per_round, "final_steps": args.steps, "final_lr": args.lr, "seconds": round(time.perf_counter() - start, 1), "command": command,
                 "commit": record["commit"], "machine": record["machine"]}
-            print(f"{args.task} {result_key(strategy, m, per_round=args.per_round)}: {vals} mean {mean:.3f}", flush=True)
+            print(f"{args.task} {result_key(strategy, m, **key_options)}: {vals} mean {mean:.3f}", flush=True)
         record["finished"] = time.strftime("%Y-%m-%dT%H:%M:%S")
         write_json(out, record)
     print(f"wrote {out}")

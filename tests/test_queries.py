@@ -150,6 +150,7 @@ def test_bench_summary_adds_a_column_per_final_ensemble(tmp_path):
     assert bench.result_key("disagreement", 1, per_round=5) == "disagreement-r5"
     assert bench.result_key("disagreement", 3, per_round=5) == "disagreement-r5+ens3"
     assert bench.result_key("random", 1, per_round=5) == "random"
+    assert bench.result_key("disagreement", 1, steps=1500, lr=1e-4) == "disagreement@s1500-lr0.0001"
     res = lambda *v: {"spearman_return": list(v), "mean": sum(v) / len(v)}  # noqa: E731
     (tmp_path / "score_model_queries_a.json").write_text(json.dumps({"results": {"random": res(0.5, 0.5)}}))
     (tmp_path / "score_model_queries_b.json").write_text(
