@@ -74,6 +74,7 @@ from torchrl_ftb.preference import (
     make_block_pair_buffer,
     make_blocks,
     score_trajectories,
+    top_k_mean,
     train_score_model,
 )
 from torchrl_ftb.provenance import git_commit, machine_info, make_logger, write_json
@@ -386,6 +387,12 @@ def final_table(metrics: dict) -> list[tuple[str, str]]:
         ("flow steps run / planned", f"{int(fl['flow_steps_run'])} / {int(fl['flow_steps_planned'])}"),
         ("generated trajectories in final set", _fmt(fl["fraction_generated_in_final"])),
         ("score Spearman vs true return", _fmt(metrics["score_quality"].get("spearman_return", float("nan")))),
+    ]
+    if "top_k_success" in metrics["score_quality"]:
+        rows.append(("successes in the top-k (dataset share)",
+                     f"{_fmt(metrics['score_quality']['top_k_success'])} "
+                     f"({_fmt(metrics['score_quality']['dataset_success'])})"))
+    rows += [
         ("wall time (s)", _fmt(metrics["wall_time_s"])),
     ]
     return rows
@@ -513,6 +520,9 @@ def run(cfg: DictConfig) -> dict:
     if ("next", "success") in trajs.keys(True):
         succ = (trajs.get(("next", "success")).squeeze(-1) & trajs.get("mask")).any(-1).float()
         quality.update({f"{k}_success": v for k, v in correlations(scores, succ).items()})
+        # the successes among the trajectories the flow starts from (BC's data but for accepted samples)
+        quality.update(top_k_success=top_k_mean(scores, succ, min(int(cfg.flow.top_k), succ.numel())),
+                       dataset_success=float(succ.mean()))
     timed("blocks", t0)
     partial_metrics["score_quality"] = quality
     if (out := stopped("blocks")) is not None:

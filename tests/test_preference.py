@@ -418,3 +418,17 @@ def test_loading_into_a_model_with_other_numbers_is_refused(tmp_path):
     with pytest.raises(ValueError, match="reward_activation"):
         load_score_model(path, model=ScoreModel(3, 2, num_cells=8))
     assert load_score_model(path, model=ScoreModel(3, 2, num_cells=8, reward_activation="sigmoid")) is not None
+
+
+def test_top_k_mean_picks_the_highest_scores_and_rejects_bad_k():
+    from torchrl_ftb.preference import top_k_mean
+
+    scores = torch.tensor([0.1, 0.9, 0.5, 0.7])
+    success = torch.tensor([True, True, False, False])
+    assert top_k_mean(scores, success, 1) == 1.0
+    assert top_k_mean(scores, success, 3) == pytest.approx(1 / 3)
+    assert top_k_mean(scores, success, 4) == 0.5
+    with pytest.raises(ValueError, match="k=5"):
+        top_k_mean(scores, success, 5)
+    with pytest.raises(ValueError, match="differ"):
+        top_k_mean(scores, success[:3], 2)

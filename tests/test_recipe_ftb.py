@@ -78,6 +78,13 @@ def test_kill_during_diffuser_training_then_resume_end_to_end(tmp_path):
     assert "success rate" in (run_dir / "report.md").read_text()
     # the score model learnt the toy preference; the final set is at least as good as the start
     assert metrics["score_quality"]["spearman_return"] > 0.5
+    quality = metrics["score_quality"]
+    assert quality["top_k_success"] >= quality["dataset_success"]  # s_psi's top-k holds more successes
+    assert "successes in the top-k" in (run_dir / "report.md").read_text()
+    # bench/topk_success.py reads the same share back from the run's saved scores
+    bench = load_script(ROOT / "bench" / "topk_success.py", "bench_topk_success")
+    rep = bench.cell_report({"metrics": metrics, "run_dir": str(run_dir)}, run_dir, {})
+    assert rep["top_k_success"] == pytest.approx(quality["top_k_success"]) and rep["top_k"] == 8
     assert metrics["flow"]["score_mean_after"] >= metrics["flow"]["score_mean_before"]
 
     # a second resume loads every finished stage and retrains nothing

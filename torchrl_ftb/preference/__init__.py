@@ -12,6 +12,7 @@ from torchrl_ftb.preference.metrics import (
     pairwise_accuracy,
     plot_preference_scatter,
     preference_metrics,
+    top_k_mean,
 )
 from torchrl_ftb.preference.pairs import (
     BlockPairSampler,
@@ -46,6 +47,7 @@ __all__ = [
     "ScoreModel",
     "bradley_terry_nll",
     "correlations",
+    "top_k_mean",
     "make_block_pair_buffer",
     "make_blocks",
     "make_labeled_pair_buffer",

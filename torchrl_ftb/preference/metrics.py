@@ -29,7 +29,7 @@ from tensordict import TensorDictBase
 from torchrl_ftb.preference.loss import preference_accuracy
 from torchrl_ftb.preference.score import ScoreModel, score_trajectories
 
-__all__ = ["preference_metrics", "pairwise_accuracy", "plot_preference_scatter", "correlations"]
+__all__ = ["preference_metrics", "pairwise_accuracy", "plot_preference_scatter", "correlations", "top_k_mean"]
 
 
 def correlations(x: torch.Tensor, y: torch.Tensor) -> dict[str, float]:
@@ -41,6 +41,24 @@ def correlations(x: torch.Tensor, y: torch.Tensor) -> dict[str, float]:
     if np.ptp(x) == 0 or np.ptp(y) == 0:
         return {"pearson": float("nan"), "spearman": float("nan")}
     return {"pearson": float(stats.pearsonr(x, y)[0]), "spearman": float(stats.spearmanr(x, y)[0])}
+
+
+def top_k_mean(scores: torch.Tensor, values: torch.Tensor, k: int) -> float:
+    """Mean of ``values`` over the ``k`` highest-scoring entries (ties broken by ``torch.topk``).
+
+    With ``values`` the per-trajectory success this is the share of successes among the
+    trajectories FTB starts from (``flow.top_k``), the data its BC policy mostly learns from.
+
+    Example:
+        >>> top_k_mean(torch.tensor([0.1, 0.9, 0.5, 0.7]), torch.tensor([1.0, 1.0, 0.0, 0.0]), 2)
+        0.5
+    """
+    scores, values = scores.detach().reshape(-1), values.detach().reshape(-1)
+    if scores.shape != values.shape:
+        raise ValueError(f"top_k_mean: scores {list(scores.shape)} and values {list(values.shape)} differ")
+    if not 1 <= k <= scores.numel():
+        raise ValueError(f"top_k_mean: k={k} must be in [1, {scores.numel()}]")
+    return float(values.double()[scores.topk(k).indices.to(values.device)].mean())
 
 
 @torch.no_grad()
