@@ -24,31 +24,25 @@ from omegaconf import OmegaConf
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "bench"))
-
-from topk_success import trajectory_success  # noqa: E402
 
 from torchrl_ftb.data import load_labels  # noqa: E402
-from torchrl_ftb.data.labels import true_return  # noqa: E402
+from torchrl_ftb.data.labels import SuccessTeacher, true_return  # noqa: E402
 from torchrl_ftb.datasets import dataset_kwargs, make_dataset  # noqa: E402
-from torchrl_ftb.preference import ScoreModel, correlations, score_trajectories, top_k_mean, train_score_model  # noqa: E402
+from torchrl_ftb.preference import correlations, score_trajectories, top_k_mean  # noqa: E402
 from torchrl_ftb.provenance import run_record, write_json  # noqa: E402
+from torchrl_ftb.testing import load_script  # noqa: E402
+
+RECIPE = load_script(ROOT / "recipes" / "ftb_offline.py", "ftb_offline_recipe")
 
 KS = (25, 50, 100, 150)
 
 
 def retrain_scores(cfg, trajs, labels, *, gamma: float) -> torch.Tensor:
-    """Scores ``[N]`` of the run's score model (as ``stage_score_model``) retrained with ``gamma``."""
-    sm = cfg.score_model
-    pool = trajs.select("observation", "action", "mask")
-    model = ScoreModel(pool["observation"].shape[-1], pool["action"].shape[-1], num_cells=int(sm.num_cells),
-                       num_layers=int(sm.num_layers), gamma=gamma, num_members=int(sm.get("num_members", 1)),
-                       reward_activation=str(sm.get("reward_activation", "identity")), seed=int(cfg.seed))
-    if sm.get("normalize_observations"):
-        model.fit_normalizer(pool)
-    train_score_model(model, labels, steps=int(sm.steps), batch_size=int(sm.batch_size), lr=float(sm.lr),
-                      eval_fraction=float(sm.eval_fraction), seed=int(cfg.seed), progress=False)
-    return score_trajectories(model, pool).cpu()
+    """Scores ``[N]`` of the run's score model retrained by the recipe's own code with ``gamma``."""
+    cfg = OmegaConf.merge(cfg, {"score_model": {"gamma": gamma}, "progress": False})
+    model = RECIPE.make_score_model(cfg, trajs["observation"].shape[-1], trajs["action"].shape[-1], "cpu")
+    RECIPE.fit_score_model(cfg, model, trajs, labels, "cpu")
+    return score_trajectories(model, trajs.select("observation", "action", "mask")).cpu()
 
 
 def ranking_report(scores: torch.Tensor, returns: torch.Tensor, success: torch.Tensor, lengths: torch.Tensor) -> dict:
@@ -77,14 +71,14 @@ def main() -> None:
                                                        max_episode_steps=int(cfg.env.max_episode_steps)))
         labels, _ = load_labels(run / "checkpoints" / "labels")
         returns = true_return(trajs, discount=float(cfg.labels.discount))
-        success, lengths = trajectory_success(trajs), trajs.get("mask").sum(-1).float()
+        success, lengths = SuccessTeacher().succeeded(trajs).float(), trajs.get("mask").sum(-1).float()
         own = torch.load(run / "checkpoints" / "blocks.pt", weights_only=True)["scores"]
         rep = {"env": name, "seed": int(cfg.seed), "teacher": str(cfg.labels.teacher),
                "labels": str(OmegaConf.select(cfg, "labels.query.strategy", default="random")),
                "run_gamma": float(cfg.score_model.gamma), "dataset_success": float(success.mean()),
                "run": ranking_report(own, returns, success, lengths), "gammas": {}}
         for gamma in args.gammas:
-            scores = retrain_scores(cfg, trajs, labels.select("tau0", "tau1", "label"), gamma=gamma)
+            scores = retrain_scores(cfg, trajs, labels, gamma=gamma)
             res = ranking_report(scores, returns, success, lengths)
             if gamma == float(cfg.score_model.gamma):
                 res["max_abs_diff_to_run_scores"] = float((scores - own).abs().max())

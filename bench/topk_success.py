@@ -27,14 +27,10 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from torchrl_ftb.analysis.plots import save_figure  # noqa: E402
+from torchrl_ftb.data.labels import SuccessTeacher  # noqa: E402
 from torchrl_ftb.datasets import dataset_kwargs, make_dataset  # noqa: E402
 from torchrl_ftb.preference import correlations, top_k_mean  # noqa: E402
 from torchrl_ftb.provenance import run_record, write_json  # noqa: E402
-
-
-def trajectory_success(trajs) -> torch.Tensor:
-    """``[N]`` 0/1: whether each trajectory succeeds on a valid step (as ``SuccessTeacher.succeeded``)."""
-    return (trajs.get(("next", "success")).reshape(trajs.get("mask").shape).bool() & trajs.get("mask")).any(-1).float()
 
 
 def cell_report(cell: dict, run_dir: Path, cache: dict) -> dict:
@@ -47,7 +43,7 @@ def cell_report(cell: dict, run_dir: Path, cache: dict) -> dict:
                                                        max_episode_steps=int(cfg.env.max_episode_steps)))
         if ("next", "success") not in trajs.keys(True):
             raise ValueError(f"{run_dir}: the dataset of {name!r} has no ('next', 'success') flag (Meta-World only)")
-        cache[key] = trajectory_success(trajs)
+        cache[key] = SuccessTeacher().succeeded(trajs).float()
     success = cache[key]
     blocks = torch.load(run_dir / "checkpoints" / "blocks.pt", weights_only=True)
     scores = blocks["scores"]
@@ -102,7 +98,7 @@ def main() -> None:
     cache: dict = {}
     for path in args.cells:
         cell = json.loads(path.read_text())
-        run_dir = ROOT / cell["run_dir"] if not Path(cell["run_dir"]).is_absolute() else Path(cell["run_dir"])
+        run_dir = ROOT / cell["run_dir"]  # an absolute run_dir stays as it is
         if not (run_dir / "checkpoints" / "blocks.pt").is_file():
             record["skipped"][str(path)] = f"run directory {cell['run_dir']} (or its blocks checkpoint) is gone"
             continue
@@ -115,8 +111,8 @@ def main() -> None:
         c = correlations(torch.tensor([r["top_k_success"] for r in rows]),
                          torch.tensor([r["policy_success"] for r in rows]))
         record["correlation_top_k_success_vs_policy"] = c
-        record["plot"] = str(plot(rows, args.out.with_suffix(".png")).relative_to(ROOT)
-                             if args.out.is_relative_to(ROOT) else args.out.with_suffix(".png"))
+        png = plot(rows, args.out.with_suffix(".png"))
+        record["plot"] = str(png.relative_to(ROOT) if png.is_relative_to(ROOT) else png)
         print(f"across {len(rows)} cells: pearson {c['pearson']:.3f}, spearman {c['spearman']:.3f}")
     write_json(args.out, record)
     print(f"-> {args.out} ({len(rows)} cells, {len(record['skipped'])} skipped)")

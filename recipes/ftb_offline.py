@@ -42,7 +42,7 @@ from tensordict import TensorDict
 
 from torchrl_ftb.analysis import novelty, plot_flow_curves, plot_histograms
 from torchrl_ftb.data import atomic_torch_save, atomic_write_text, read_checkpoint, trajectories_to_flat
-from torchrl_ftb.data.labels import load_labels, make_teacher, save_labels, true_return
+from torchrl_ftb.data.labels import SuccessTeacher, load_labels, make_teacher, save_labels, true_return
 from torchrl_ftb.datasets import dataset_kwargs, make_dataset
 from torchrl_ftb.diffusion import DiffusionSampler, load_diffuser, make_diffuser, run_settings, train_diffuser
 from torchrl_ftb.diffusion.train import CHECKPOINT_NAME
@@ -215,22 +215,33 @@ def _td_from_ckpt(d: dict, path: Path, key: str) -> TensorDict:
 # ------
 
 
-def stage_score_model(cfg, run: RunDir, trajs, labels, obs_dim, act_dim, device, logger) -> ScoreModel:
+def make_score_model(cfg, obs_dim: int, act_dim: int, device) -> ScoreModel:
+    """The untrained score model of ``cfg.score_model`` (seeded by ``cfg.seed``)."""
     sm_cfg = cfg.score_model
-    model = ScoreModel(obs_dim, act_dim, num_cells=int(sm_cfg.num_cells), num_layers=int(sm_cfg.num_layers),
-                       gamma=float(sm_cfg.gamma), num_members=int(sm_cfg.get("num_members", 1)),
-                       reward_activation=str(sm_cfg.get("reward_activation", "identity")),
-                       seed=int(cfg.seed), device=device)
-    path = run.ckpt / "score_model.pt"
-    if run.done("score_model"):
-        return load_score_model(path, model=model, map_location=device)
+    return ScoreModel(obs_dim, act_dim, num_cells=int(sm_cfg.num_cells), num_layers=int(sm_cfg.num_layers),
+                      gamma=float(sm_cfg.gamma), num_members=int(sm_cfg.get("num_members", 1)),
+                      reward_activation=str(sm_cfg.get("reward_activation", "identity")),
+                      seed=int(cfg.seed), device=device)
+
+
+def fit_score_model(cfg, model: ScoreModel, trajs, labels, device, logger=None) -> dict:
+    """Fit ``model``'s observation normaliser (if configured) and train it on ``labels`` as ``cfg`` says."""
+    sm_cfg = cfg.score_model
     if sm_cfg.get("normalize_observations"):
         model.fit_normalizer(trajs)  # on the whole dataset, not the labelled trajectories
-    out = train_score_model(
+    return train_score_model(
         model, labels, steps=int(sm_cfg.steps), batch_size=int(sm_cfg.batch_size), lr=float(sm_cfg.lr),
         eval_fraction=float(sm_cfg.eval_fraction), seed=int(cfg.seed), logger=logger,
         progress=bool(cfg.progress), device=device,
     )
+
+
+def stage_score_model(cfg, run: RunDir, trajs, labels, obs_dim, act_dim, device, logger) -> ScoreModel:
+    model = make_score_model(cfg, obs_dim, act_dim, device)
+    path = run.ckpt / "score_model.pt"
+    if run.done("score_model"):
+        return load_score_model(path, model=model, map_location=device)
+    out = fit_score_model(cfg, model, trajs, labels, device, logger)
     save_score_model(model, path)
     run.mark("score_model", **{k: v for k, v in out.items() if isinstance(v, (int, float)) and math.isfinite(v)})
     return model
@@ -518,7 +529,7 @@ def run(cfg: DictConfig) -> dict:
     returns = true_return(trajs, discount=float(cfg.labels.discount))
     quality = {f"{k}_return": v for k, v in correlations(scores, returns).items()}
     if ("next", "success") in trajs.keys(True):
-        succ = (trajs.get(("next", "success")).squeeze(-1) & trajs.get("mask")).any(-1).float()
+        succ = SuccessTeacher().succeeded(trajs).float()
         quality.update({f"{k}_success": v for k, v in correlations(scores, succ).items()})
         # the successes among the trajectories the flow starts from (BC's data but for accepted samples)
         quality.update(top_k_success=top_k_mean(scores, succ, min(int(cfg.flow.top_k), succ.numel())),
