@@ -1,7 +1,7 @@
 """Does the summed score s_psi favour long trajectories? Retrain a run's s_psi with a discount. (issues #3, #5)
 
 ``s_psi(tau) = sum_h gamma^h r_psi(s_h, a_h)`` (paper Eq. 4 with gamma = 1, the recipes' default).
-On Meta-World a success ends the episode (mean 136-223 steps) while a failure runs all 500, so
+On Meta-World a success ends the episode (mean 136-304 steps by task) while a failure runs all 500, so
 wherever r_psi > 0 a failure collects more score just by lasting longer; the top of the ranking
 is where that shows. For each given FTB run (``recipes/ftb_offline.py`` run directory) this
 retrains the score model exactly as the run's ``score_model`` stage did (its config, labels and

@@ -32,6 +32,8 @@ from torchrl_ftb.datasets import dataset_kwargs, make_dataset  # noqa: E402
 from torchrl_ftb.preference import correlations, top_k_mean  # noqa: E402
 from torchrl_ftb.provenance import run_record, write_json  # noqa: E402
 
+KS = (25, 50, 100, 150)
+
 
 def cell_report(cell: dict, run_dir: Path, cache: dict) -> dict:
     """Top-k success share of one cell's run, from its saved block scores."""
@@ -43,8 +45,8 @@ def cell_report(cell: dict, run_dir: Path, cache: dict) -> dict:
                                                        max_episode_steps=int(cfg.env.max_episode_steps)))
         if ("next", "success") not in trajs.keys(True):
             raise ValueError(f"{run_dir}: the dataset of {name!r} has no ('next', 'success') flag (Meta-World only)")
-        cache[key] = SuccessTeacher().succeeded(trajs).float()
-    success = cache[key]
+        cache[key] = SuccessTeacher().succeeded(trajs).float(), trajs.get("mask").sum(-1).float()
+    success, lengths = cache[key]
     blocks = torch.load(run_dir / "checkpoints" / "blocks.pt", weights_only=True)
     scores = blocks["scores"]
     if scores.shape != success.shape:
@@ -57,6 +59,11 @@ def cell_report(cell: dict, run_dir: Path, cache: dict) -> dict:
         "labels": str(OmegaConf.select(cfg, "labels.query.strategy", default="random")),
         "top_k": k, "top_k_success": top_k_mean(scores, success, k), "dataset_success": float(success.mean()),
         "spearman_success": correlations(scores, success)["spearman"],
+        # the same share for other k, and how long the top-scored and the (un)successful trajectories are
+        "top_k_success_by_k": {str(j): top_k_mean(scores, success, j) for j in KS if j <= scores.numel()},
+        "top25_length_mean": top_k_mean(scores, lengths, min(25, scores.numel())),
+        "length_mean_success": float(lengths[success > 0].mean()) if bool((success > 0).any()) else None,
+        "length_mean_failure": float(lengths[success == 0].mean()) if bool((success == 0).any()) else None,
         "fraction_generated_in_final": float(flow["fraction_generated_in_final"]),
         "policy_success": float(cell["metrics"]["eval"]["success_rate"]),
         "run_dir": str(run_dir),
