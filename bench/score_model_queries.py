@@ -44,28 +44,37 @@ sys.path.insert(0, str(ROOT))
 
 
 def final_scores(trajs: TensorDictBase, labels: TensorDictBase, *, seed: int, steps: int, lr: float,
-                 members: int = 1) -> torch.Tensor:
-    """Scores ``[N]`` of the recipe's score model (as ``stage_score_model``, ``score_model.num_members=members``)
-    trained on ``labels``."""
-    from torchrl_ftb.preference import ScoreModel, score_trajectories, train_score_model
+                 members: int = 1, reward_activation: str = "identity") -> torch.Tensor:
+    """Scores ``[N]`` of the recipe's score model trained on ``labels`` by the recipe's own
+    ``make_score_model`` / ``fit_score_model`` (its config with ``seed``, ``score_model.steps``, ``.lr``,
+    ``.num_members`` and ``.reward_activation`` set)."""
+    from omegaconf import OmegaConf
 
+    from torchrl_ftb.preference import score_trajectories
+    from torchrl_ftb.testing import load_script
+
+    recipe = load_script(ROOT / "recipes" / "ftb_offline.py", "ftb_offline_recipe")
+    cfg = OmegaConf.merge(OmegaConf.load(ROOT / "recipes" / "config" / "ftb_offline.yaml"), {
+        "seed": seed, "progress": False,
+        "score_model": {"steps": steps, "lr": lr, "num_members": members, "reward_activation": reward_activation}})
     pool = trajs.select("observation", "action", "mask")
-    model = ScoreModel(pool["observation"].shape[-1], pool["action"].shape[-1], num_members=members,
-                       seed=seed).fit_normalizer(pool)
-    train_score_model(model, labels.select("tau0", "tau1", "label"), steps=steps, lr=lr, eval_fraction=0.0,
-                      seed=seed, progress=False)
+    model = recipe.make_score_model(cfg, pool["observation"].shape[-1], pool["action"].shape[-1], "cpu")
+    recipe.fit_score_model(cfg, model, pool, labels.select("tau0", "tau1", "label"), "cpu")
     return score_trajectories(model, pool)
 
 
 def result_key(strategy: str, final_members: int, *, per_round: int = 10, steps: int = 500,
-               lr: float = 1e-3) -> str:
+               lr: float = 1e-3, reward_activation: str = "identity") -> str:
     """``"disagreement"`` for the recipe's ``cpu``-preset one-member s_psi (500 steps at lr 1e-3) and rounds
     of 10, ``"disagreement+ens3"`` for a 3-member final s_psi, ``"disagreement-r5"`` for rounds of 5 pairs
     (``random`` has no rounds), ``"disagreement@s1500-lr0.0001"`` for a final s_psi trained otherwise
-    (here the ``paper`` preset's)."""
+    (here the ``paper`` preset's), ``"disagreement+sigmoid"`` for ``score_model.reward_activation=sigmoid``
+    (provisional and final models)."""
     key = strategy if per_round == 10 or strategy == "random" else f"{strategy}-r{per_round}"
     if (steps, lr) != (500, 1e-3):
         key = f"{key}@s{steps}-lr{lr:g}"
+    if reward_activation != "identity":
+        key = f"{key}+{reward_activation}"
     return key if final_members == 1 else f"{key}+ens{final_members}"
 
 
@@ -138,6 +147,8 @@ def main() -> None:
     parser.add_argument("--lr", type=float, default=1e-3, help="final s_psi: Adam lr (1e-3 cpu, 1e-4 paper)")
     parser.add_argument("--round-lr", type=float, default=1e-3,
                         help="provisional models of the query rounds: Adam lr (the recipe's labels.query.lr)")
+    parser.add_argument("--reward-activation", default="identity", choices=["identity", "sigmoid"],
+                        help="score_model.reward_activation of the provisional and the final models")
     parser.add_argument("--out-dir", default=str(ROOT / "bench" / "results"))
     parser.add_argument("--summary", action="store_true", help="print the Markdown table of --out-dir and exit")
     args = parser.parse_args()
@@ -161,7 +172,8 @@ def main() -> None:
     record = {"benchmark": "score_model_queries", "command": command, "config": dict(vars(args)),
               "commit": git_commit(), "machine": machine_info(), "dataset_path": meta.get("path"),
               "teacher": teacher.name, "started": time.strftime("%Y-%m-%dT%H:%M:%S"), "results": results}
-    key_options = {"per_round": args.per_round, "steps": args.steps, "lr": args.lr}
+    key_options = {"per_round": args.per_round, "steps": args.steps, "lr": args.lr,
+                   "reward_activation": args.reward_activation}
     for strategy in args.strategies:
         start, within = time.perf_counter(), []
         values = {m: [] for m in args.final_members}
@@ -169,11 +181,13 @@ def main() -> None:
             labels = make_query_labels(trajs, num_pairs=args.num_labels, teacher=teacher, seed=seed,
                                        strategy=strategy, initial=args.initial, per_round=args.per_round,
                                        members=args.members, distinct=args.distinct, steps=args.round_steps,
-                                       lr=args.round_lr)
+                                       lr=args.round_lr,
+                                       model_kwargs={"reward_activation": args.reward_activation})
             same = (group[labels["index0"]] == group[labels["index1"]]).sum().item()
             within.append(int(same))
             for m in args.final_members:
-                scores = final_scores(trajs, labels, seed=seed, steps=args.steps, lr=args.lr, members=m)
+                scores = final_scores(trajs, labels, seed=seed, steps=args.steps, lr=args.lr, members=m,
+                                      reward_activation=args.reward_activation)
                 values[m].append(round(correlations(scores, returns)["spearman"], 4))
                 print(f"{args.task} {result_key(strategy, m, **key_options)} seed {seed}: {values[m][-1]} "
                       f"({same} within-group pairs)", flush=True)
@@ -181,7 +195,7 @@ def main() -> None:
             mean = sum(vals) / len(vals)
             results[result_key(strategy, m, **key_options)] = {
                 "spearman_return": vals, "seeds": list(args.seeds), "mean": round(mean, 4), "within_group_pairs": within,
-                "final_members": m, "per_round": args.per_round, "final_steps": args.steps, "final_lr": args.lr, "seconds": round(time.perf_counter() - start, 1), "command": command,
+                "final_members": m, "per_round": args.per_round, "final_steps": args.steps, "final_lr": args.lr, "reward_activation": args.reward_activation, "seconds": round(time.perf_counter() - start, 1), "command": command,
                 "commit": record["commit"], "machine": record["machine"]}
             print(f"{args.task} {result_key(strategy, m, **key_options)}: {vals} mean {mean:.3f}", flush=True)
         record["finished"] = time.strftime("%Y-%m-%dT%H:%M:%S")
