@@ -15,18 +15,25 @@ budget, same teacher, same final model):
   closest to 0.5.
 
 The final score model is the recipe's ``cpu``-preset s_psi (normalised r_psi, 256x3, 500
-full-batch Adam steps at lr 1e-3) trained on the 30 chosen labels, so only the choice of pairs
-differs. The strategies are the library's ``torchrl_ftb.preference.make_query_labels`` (the
+full-batch Adam steps at lr 1e-3), built and trained by the recipe's own ``make_score_model`` /
+``fit_score_model`` on the 30 chosen labels, so only the choice of pairs differs
+(``--reward-activation``, ``--steps``, ``--lr``, ``--final-members`` change that model, the first also
+the provisional ones). The strategies are the library's ``torchrl_ftb.preference.make_query_labels`` (the
 recipes' ``labels.query``). Reports Spearman(s_psi, true return) over the whole dataset per label seed. Not a test.
 
     python bench/score_model_queries.py --task button-press-v3 --strategies random disagreement entropy
     python bench/score_model_queries.py --summary     # the Markdown table of the committed results
+    python bench/score_model_queries.py --pooled bench/results bench/results/score_model_queries_seeds5-9 \
+        bench/results/score_model_queries_seeds5-9_random   # label seeds 0-9 pooled, with standard errors
 
 Writes bench/results/score_model_queries_<task>.json (command, config, commit, machine,
 results), rewritten after every strategy; results already in the file for other keys are kept (each
 result records the command, commit and machine that made it).
 
     python bench/score_model_queries.py --task plate-slide-v3 --strategies disagreement --final-members 1 3
+    python bench/score_model_queries.py --task drawer-open-v3 --strategies disagreement --reward-activation sigmoid
+    python bench/score_model_queries.py --task drawer-open-v3 --strategies disagreement --seeds 5 6 7 8 9 \
+        --out-dir bench/results/score_model_queries_seeds5-9   # held-out label seeds
 """
 from __future__ import annotations
 
@@ -123,6 +130,36 @@ def summary(results_dir: Path) -> str:
     return "\n".join(rows)
 
 
+def pooled(results_dirs: list[Path], keys: list[str] | None = None) -> str:
+    """Markdown table: per task and result key, Spearman pooled over every label seed found in
+    ``results_dirs`` (e.g. seeds 0-4 in ``bench/results`` and held-out seeds 5-9 elsewhere), as
+    mean +- standard error of the mean, the seed count, and the per-directory means. A seed that
+    appears twice for one key is an error (two directories made with the same seeds). ``keys``: only
+    these result keys (default: all). Results made before seeds were recorded ran seeds ``0..n-1``."""
+    table: dict[tuple[str, str], dict[int, float]] = {}
+    parts: dict[tuple[str, str], list[str]] = {}
+    for results_dir in results_dirs:
+        for path in sorted(results_dir.glob("score_model_queries_*.json")):
+            task = path.stem.removeprefix("score_model_queries_")
+            for key, res in json.loads(path.read_text())["results"].items():
+                if keys is not None and key not in keys:
+                    continue
+                res.setdefault("seeds", list(range(len(res["spearman_return"]))))
+                seeds = table.setdefault((task, key), {})
+                for seed, value in zip(res["seeds"], res["spearman_return"]):
+                    if seed in seeds:
+                        raise ValueError(f"{path}: {key!r} label seed {seed} also in another directory")
+                    seeds[seed] = value
+                parts.setdefault((task, key), []).append(f"{res['mean']:.3f} (seeds {min(res['seeds'])}-{max(res['seeds'])})")
+    rows = ["| task | result | seeds | pooled Spearman (mean ± s.e.) | per directory |", "|---|---|---|---|---|"]
+    for (task, key), seeds in sorted(table.items()):
+        vals = torch.tensor(list(seeds.values()), dtype=torch.float64)
+        se = (vals.std() / len(vals) ** 0.5).item() if len(vals) > 1 else float("nan")
+        rows.append(f"| {task} | {key} | {len(vals)} | {vals.mean().item():.3f} ± {se:.3f} | "
+                    + " / ".join(parts[(task, key)]) + " |")
+    return "\n".join(rows)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--task", default="button-press-v3")
@@ -151,7 +188,13 @@ def main() -> None:
                         help="score_model.reward_activation of the provisional and the final models")
     parser.add_argument("--out-dir", default=str(ROOT / "bench" / "results"))
     parser.add_argument("--summary", action="store_true", help="print the Markdown table of --out-dir and exit")
+    parser.add_argument("--pooled", nargs="+", default=None, metavar="DIR",
+                        help="print Spearman pooled over the label seeds of these results directories and exit")
+    parser.add_argument("--keys", nargs="+", default=None, help="with --pooled: only these result keys")
     args = parser.parse_args()
+    if args.pooled:
+        print(pooled([Path(d) for d in args.pooled], args.keys))
+        return
     if args.summary:
         print(summary(Path(args.out_dir)))
         return
