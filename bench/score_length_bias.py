@@ -25,7 +25,7 @@ from omegaconf import OmegaConf
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from torchrl_ftb.data import load_labels  # noqa: E402
+from torchrl_ftb.data import load_labels, trajectory_lengths  # noqa: E402
 from torchrl_ftb.data.labels import SuccessTeacher, true_return  # noqa: E402
 from torchrl_ftb.datasets import dataset_kwargs, make_dataset  # noqa: E402
 from torchrl_ftb.preference import correlations, score_trajectories, top_k_mean  # noqa: E402
@@ -71,7 +71,7 @@ def main() -> None:
                                                        max_episode_steps=int(cfg.env.max_episode_steps)))
         labels, _ = load_labels(run / "checkpoints" / "labels")
         returns = true_return(trajs, discount=float(cfg.labels.discount))
-        success, lengths = SuccessTeacher().succeeded(trajs).float(), trajs.get("mask").sum(-1).float()
+        success, lengths = SuccessTeacher().succeeded(trajs).float(), trajectory_lengths(trajs).float()
         own = torch.load(run / "checkpoints" / "blocks.pt", weights_only=True)["scores"]
         rep = {"env": name, "seed": int(cfg.seed), "teacher": str(cfg.labels.teacher),
                "labels": str(OmegaConf.select(cfg, "labels.query.strategy", default="random")),

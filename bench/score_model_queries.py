@@ -38,6 +38,7 @@ result records the command, commit and machine that made it).
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import sys
 import time
@@ -50,6 +51,17 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 
+@functools.cache
+def _recipe():
+    """The FTB recipe module and its config file, loaded once per process (not for ``--summary``)."""
+    from omegaconf import OmegaConf
+
+    from torchrl_ftb.testing import load_script
+
+    return (load_script(ROOT / "recipes" / "ftb_offline.py", "ftb_offline_recipe"),
+            OmegaConf.load(ROOT / "recipes" / "config" / "ftb_offline.yaml"))
+
+
 def final_scores(trajs: TensorDictBase, labels: TensorDictBase, *, seed: int, steps: int, lr: float,
                  members: int = 1, reward_activation: str = "identity") -> torch.Tensor:
     """Scores ``[N]`` of the recipe's score model trained on ``labels`` by the recipe's own
@@ -58,10 +70,9 @@ def final_scores(trajs: TensorDictBase, labels: TensorDictBase, *, seed: int, st
     from omegaconf import OmegaConf
 
     from torchrl_ftb.preference import score_trajectories
-    from torchrl_ftb.testing import load_script
 
-    recipe = load_script(ROOT / "recipes" / "ftb_offline.py", "ftb_offline_recipe")
-    cfg = OmegaConf.merge(OmegaConf.load(ROOT / "recipes" / "config" / "ftb_offline.yaml"), {
+    recipe, base_cfg = _recipe()
+    cfg = OmegaConf.merge(base_cfg, {
         "seed": seed, "progress": False,
         "score_model": {"steps": steps, "lr": lr, "num_members": members, "reward_activation": reward_activation}})
     pool = trajs.select("observation", "action", "mask")

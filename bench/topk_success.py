@@ -27,6 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from torchrl_ftb.analysis.plots import save_figure  # noqa: E402
+from torchrl_ftb.data import trajectory_lengths  # noqa: E402
 from torchrl_ftb.data.labels import SuccessTeacher  # noqa: E402
 from torchrl_ftb.datasets import dataset_kwargs, make_dataset  # noqa: E402
 from torchrl_ftb.preference import correlations, top_k_mean  # noqa: E402
@@ -45,7 +46,7 @@ def cell_report(cell: dict, run_dir: Path, cache: dict) -> dict:
                                                        max_episode_steps=int(cfg.env.max_episode_steps)))
         if ("next", "success") not in trajs.keys(True):
             raise ValueError(f"{run_dir}: the dataset of {name!r} has no ('next', 'success') flag (Meta-World only)")
-        cache[key] = SuccessTeacher().succeeded(trajs).float(), trajs.get("mask").sum(-1).float()
+        cache[key] = SuccessTeacher().succeeded(trajs).float(), trajectory_lengths(trajs).float()
     success, lengths = cache[key]
     blocks = torch.load(run_dir / "checkpoints" / "blocks.pt", weights_only=True)
     scores = blocks["scores"]
