@@ -19,7 +19,11 @@ full-batch Adam steps at lr 1e-3), built and trained by the recipe's own ``make_
 ``fit_score_model`` on the 30 chosen labels, so only the choice of pairs differs
 (``--reward-activation``, ``--steps``, ``--lr``, ``--final-members`` change that model, the first also
 the provisional ones). The strategies are the library's ``torchrl_ftb.preference.make_query_labels`` (the
-recipes' ``labels.query``). Reports Spearman(s_psi, true return) over the whole dataset per label seed. Not a test.
+recipes' ``labels.query``). Reports Spearman(s_psi, true return) over the whole dataset per label seed, and
+beside it Spearman(s_psi, success), the share of successes among the s_psi top-100 (the set FTB's flow starts
+from) and the mean length of the top 25. ``--teacher success`` labels with the success-aware teacher,
+``--teacher-horizon`` / ``--score-horizon`` set the stop-rule fill of the teacher (``labels.horizon``) / of
+s_psi (``score_model.horizon``); the Spearman stays with the plain true return. Not a test.
 
     python bench/score_model_queries.py --task button-press-v3 --strategies random disagreement entropy
     python bench/score_model_queries.py --summary     # the Markdown table of the committed results
@@ -34,6 +38,8 @@ result records the command, commit and machine that made it).
     python bench/score_model_queries.py --task drawer-open-v3 --strategies disagreement --reward-activation sigmoid
     python bench/score_model_queries.py --task drawer-open-v3 --strategies disagreement --seeds 5 6 7 8 9 \
         --out-dir bench/results/score_model_queries_seeds5-9   # held-out label seeds
+    python bench/score_model_queries.py --task plate-slide-v3 --strategies random --teacher success \
+        --score-horizon 500 --out-dir bench/results/score_model_queries_success   # success teacher, filled s_psi
 """
 from __future__ import annotations
 
@@ -63,10 +69,10 @@ def _recipe():
 
 
 def final_scores(trajs: TensorDictBase, labels: TensorDictBase, *, seed: int, steps: int, lr: float,
-                 members: int = 1, reward_activation: str = "identity") -> torch.Tensor:
+                 members: int = 1, reward_activation: str = "identity", horizon: int | None = None) -> torch.Tensor:
     """Scores ``[N]`` of the recipe's score model trained on ``labels`` by the recipe's own
     ``make_score_model`` / ``fit_score_model`` (its config with ``seed``, ``score_model.steps``, ``.lr``,
-    ``.num_members`` and ``.reward_activation`` set)."""
+    ``.num_members``, ``.reward_activation`` and ``.horizon`` set)."""
     from omegaconf import OmegaConf
 
     from torchrl_ftb.preference import score_trajectories
@@ -74,7 +80,8 @@ def final_scores(trajs: TensorDictBase, labels: TensorDictBase, *, seed: int, st
     recipe, base_cfg = _recipe()
     cfg = OmegaConf.merge(base_cfg, {
         "seed": seed, "progress": False,
-        "score_model": {"steps": steps, "lr": lr, "num_members": members, "reward_activation": reward_activation}})
+        "score_model": {"steps": steps, "lr": lr, "num_members": members, "reward_activation": reward_activation,
+                        "horizon": horizon}})
     pool = trajs.select("observation", "action", "mask")
     model = recipe.make_score_model(cfg, pool["observation"].shape[-1], pool["action"].shape[-1], "cpu")
     recipe.fit_score_model(cfg, model, pool, labels.select("tau0", "tau1", "label"), "cpu")
@@ -82,18 +89,24 @@ def final_scores(trajs: TensorDictBase, labels: TensorDictBase, *, seed: int, st
 
 
 def result_key(strategy: str, final_members: int, *, per_round: int = 10, steps: int = 500,
-               lr: float = 1e-3, reward_activation: str = "identity") -> str:
+               lr: float = 1e-3, reward_activation: str = "identity", horizon: int | None = None,
+               teacher: str = "return") -> str:
     """``"disagreement"`` for the recipe's ``cpu``-preset one-member s_psi (500 steps at lr 1e-3) and rounds
     of 10, ``"disagreement+ens3"`` for a 3-member final s_psi, ``"disagreement-r5"`` for rounds of 5 pairs
     (``random`` has no rounds), ``"disagreement@s1500-lr0.0001"`` for a final s_psi trained otherwise
     (here the ``paper`` preset's), ``"disagreement+sigmoid"`` for ``score_model.reward_activation=sigmoid``
-    (provisional and final models)."""
+    (provisional and final models), ``"random+h500"`` for ``score_model.horizon=500`` (the stop-rule fill),
+    ``"success:random"`` for another teacher than the paper's ``return`` (its name, e.g.
+    ``return(horizon=500)``, before the colon)."""
     key = strategy if per_round == 10 or strategy == "random" else f"{strategy}-r{per_round}"
     if (steps, lr) != (500, 1e-3):
         key = f"{key}@s{steps}-lr{lr:g}"
     if reward_activation != "identity":
         key = f"{key}+{reward_activation}"
-    return key if final_members == 1 else f"{key}+ens{final_members}"
+    if horizon is not None:
+        key = f"{key}+h{horizon}"
+    key = key if final_members == 1 else f"{key}+ens{final_members}"
+    return key if teacher == "return" else f"{teacher}:{key}"
 
 
 def earlier_results(path: Path) -> dict:
@@ -197,6 +210,12 @@ def main() -> None:
                         help="provisional models of the query rounds: Adam lr (the recipe's labels.query.lr)")
     parser.add_argument("--reward-activation", default="identity", choices=["identity", "sigmoid"],
                         help="score_model.reward_activation of the provisional and the final models")
+    parser.add_argument("--teacher", default="return", choices=["return", "success"],
+                        help="scripted teacher of the labels (the Spearman is always with the plain true return)")
+    parser.add_argument("--teacher-horizon", type=int, default=None,
+                        help="the teacher's stop-rule fill (labels.horizon; default: the paper's plain sum)")
+    parser.add_argument("--score-horizon", type=int, default=None,
+                        help="s_psi's stop-rule fill (score_model.horizon), provisional and final models")
     parser.add_argument("--out-dir", default=str(ROOT / "bench" / "results"))
     parser.add_argument("--summary", action="store_true", help="print the Markdown table of --out-dir and exit")
     parser.add_argument("--pooled", nargs="+", default=None, metavar="DIR",
@@ -210,14 +229,16 @@ def main() -> None:
         print(summary(Path(args.out_dir)))
         return
     torch.set_num_threads(1)
-    from torchrl_ftb.data.labels import ReturnTeacher
+    from torchrl_ftb.data import trajectory_lengths
+    from torchrl_ftb.data.labels import ReturnTeacher, SuccessTeacher, make_teacher
     from torchrl_ftb.datasets import make_metaworld_dataset
-    from torchrl_ftb.preference import correlations, make_query_labels
+    from torchrl_ftb.preference import correlations, make_query_labels, top_k_mean
     from torchrl_ftb.provenance import git_commit, machine_info, write_json
 
     trajs, meta = make_metaworld_dataset(args.task, episodes_per_group=100, noise=1.0, seed=0, progress=False)
-    teacher = ReturnTeacher()
-    returns = teacher.returns(trajs)
+    teacher = make_teacher(args.teacher, horizon=args.teacher_horizon)
+    returns = ReturnTeacher().returns(trajs)  # the metric: the plain true return, whatever the teacher
+    success, lengths = SuccessTeacher().succeeded(trajs).float(), trajectory_lengths(trajs).float()
     group = torch.as_tensor(meta["per_trajectory"]["group"])  # expert / within-env / random / cross-env
     out = Path(args.out_dir) / f"score_model_queries_{args.task}.json"
     command = " ".join([sys.executable, *sys.argv])
@@ -227,28 +248,37 @@ def main() -> None:
               "commit": git_commit(), "machine": machine_info(), "dataset_path": meta.get("path"),
               "teacher": teacher.name, "started": time.strftime("%Y-%m-%dT%H:%M:%S"), "results": results}
     key_options = {"per_round": args.per_round, "steps": args.steps, "lr": args.lr,
-                   "reward_activation": args.reward_activation}
+                   "reward_activation": args.reward_activation, "horizon": args.score_horizon,
+                   "teacher": teacher.name}
     for strategy in args.strategies:
         start, within = time.perf_counter(), []
         values = {m: [] for m in args.final_members}
+        extra = {m: {"spearman_success": [], "top100_success": [], "top25_length": []} for m in args.final_members}
         for seed in args.seeds:
             labels = make_query_labels(trajs, num_pairs=args.num_labels, teacher=teacher, seed=seed,
                                        strategy=strategy, initial=args.initial, per_round=args.per_round,
                                        members=args.members, distinct=args.distinct, steps=args.round_steps,
                                        lr=args.round_lr,
-                                       model_kwargs={"reward_activation": args.reward_activation})
+                                       model_kwargs={"reward_activation": args.reward_activation,
+                                                     "horizon": args.score_horizon})
             same = (group[labels["index0"]] == group[labels["index1"]]).sum().item()
             within.append(int(same))
             for m in args.final_members:
                 scores = final_scores(trajs, labels, seed=seed, steps=args.steps, lr=args.lr, members=m,
-                                      reward_activation=args.reward_activation)
+                                      reward_activation=args.reward_activation, horizon=args.score_horizon)
                 values[m].append(round(correlations(scores, returns)["spearman"], 4))
+                extra[m]["spearman_success"].append(round(correlations(scores, success)["spearman"], 4))
+                extra[m]["top100_success"].append(round(top_k_mean(scores, success, 100), 4))
+                extra[m]["top25_length"].append(round(top_k_mean(scores, lengths, 25), 1))
                 print(f"{args.task} {result_key(strategy, m, **key_options)} seed {seed}: {values[m][-1]} "
-                      f"({same} within-group pairs)", flush=True)
+                      f"(success {extra[m]['spearman_success'][-1]}, top-100 successes "
+                      f"{extra[m]['top100_success'][-1]}, top-25 length {extra[m]['top25_length'][-1]}; "
+                      f"{same} within-group pairs)", flush=True)
         for m, vals in values.items():
             mean = sum(vals) / len(vals)
             results[result_key(strategy, m, **key_options)] = {
-                "spearman_return": vals, "seeds": list(args.seeds), "mean": round(mean, 4), "within_group_pairs": within,
+                "spearman_return": vals, **extra[m], "teacher": teacher.name, "score_horizon": args.score_horizon,
+                "seeds": list(args.seeds), "mean": round(mean, 4), "within_group_pairs": within,
                 "final_members": m, "per_round": args.per_round, "final_steps": args.steps, "final_lr": args.lr, "reward_activation": args.reward_activation, "seconds": round(time.perf_counter() - start, 1), "command": command,
                 "commit": record["commit"], "machine": record["machine"]}
             print(f"{args.task} {result_key(strategy, m, **key_options)}: {vals} mean {mean:.3f}", flush=True)

@@ -62,13 +62,16 @@ def make_labels(cfg: DictConfig, trajs, *, device=None):
     active query round trains score models they would never use).
     """
     lab = cfg.labels
-    teacher = make_teacher(str(lab.teacher), discount=float(lab.discount))
+    horizon = lab.get("horizon")
+    teacher = make_teacher(str(lab.teacher), discount=float(lab.discount),
+                           horizon=None if horizon is None else int(horizon))
     if cfg.method not in LABEL_METHODS:
         return make_scripted_labels(trajs, num_pairs=int(lab.num_pairs), teacher=teacher, seed=int(lab.seed)), teacher
     sm_cfg = cfg.score_model
     labels = make_query_labels(
         trajs, num_pairs=int(lab.num_pairs), teacher=teacher, seed=int(lab.seed), **dict(lab.get("query") or {}),
-        model_kwargs={k: sm_cfg.get(k) for k in ("num_cells", "num_layers", "gamma", "reward_activation")},
+        model_kwargs={k: sm_cfg.get(k) for k in ("num_cells", "num_layers", "gamma", "reward_activation",
+                                                 "horizon")},
         normalize_observations=bool(sm_cfg.get("normalize_observations")), device=device,
     )
     return labels, teacher
@@ -197,7 +200,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         top_fraction=float(cfg.bc10.top_fraction), teacher=teacher,
         reward_normalization=str(cfg.reward_normalization),
         reward_model={k: cfg.score_model.get(k) for k in ("num_cells", "num_layers", "gamma", "reward_activation",
-                                                           "normalize_observations")},
+                                                           "horizon", "normalize_observations")},
         reward_training={k: cfg.score_model[k] for k in ("steps", "batch_size", "lr", "eval_fraction")},
         oprl_members=int(cfg.oprl.members), logger=logger, progress=bool(cfg.progress), device=device,
     )

@@ -221,7 +221,11 @@ def make_score_model(cfg, obs_dim: int, act_dim: int, device) -> ScoreModel:
     return ScoreModel(obs_dim, act_dim, num_cells=int(sm_cfg.num_cells), num_layers=int(sm_cfg.num_layers),
                       gamma=float(sm_cfg.gamma), num_members=int(sm_cfg.get("num_members", 1)),
                       reward_activation=str(sm_cfg.get("reward_activation", "identity")),
-                      seed=int(cfg.seed), device=device)
+                      horizon=_optional_int(sm_cfg.get("horizon")), seed=int(cfg.seed), device=device)
+
+
+def _optional_int(value) -> int | None:
+    return None if value is None else int(value)
 
 
 def fit_score_model(cfg, model: ScoreModel, trajs, labels, device, logger=None) -> dict:
@@ -449,6 +453,10 @@ def run(cfg: DictConfig) -> dict:
     if cfg.flow.get("max_frame_stack_error") is not None and kind != "metaworld":
         raise ValueError(f"flow.max_frame_stack_error is a Meta-World check (stacked previous frame); "
                          f"env.name={cfg.env.name!r} is {kind}: leave it null")
+    if cfg.score_model.get("horizon") is not None and kind == "locomotion":
+        raise ValueError(f"score_model.horizon is the stop-rule fill for tasks without terminal states "
+                         f"(Meta-World); env.name={cfg.env.name!r} episodes terminate (falls) and the diffuser's "
+                         f"samples carry no termination flag: leave it null")
     stop_after = cfg.get("stop_after")
     if stop_after is not None and stop_after not in STAGES:
         raise ValueError(f"stop_after={stop_after!r}: not a stage; choose one of {list(STAGES)}")
@@ -500,7 +508,8 @@ def run(cfg: DictConfig) -> dict:
 
     # 2. labels -------------------------------------------------------------------------
     t0 = time.perf_counter()
-    teacher = make_teacher(str(cfg.labels.teacher), discount=float(cfg.labels.discount))
+    teacher = make_teacher(str(cfg.labels.teacher), discount=float(cfg.labels.discount),
+                           horizon=_optional_int(cfg.labels.get("horizon")))
     label_dir = run_dir.ckpt / "labels"
     if run_dir.done("labels"):
         labels, _ = load_labels(label_dir)
@@ -508,7 +517,8 @@ def run(cfg: DictConfig) -> dict:
         sm_cfg = cfg.score_model
         labels = make_query_labels(
             trajs, num_pairs=int(cfg.labels.num_pairs), teacher=teacher, seed=int(cfg.labels.seed), **query,
-            model_kwargs={k: sm_cfg.get(k) for k in ("num_cells", "num_layers", "gamma", "reward_activation")},
+            model_kwargs={k: sm_cfg.get(k) for k in ("num_cells", "num_layers", "gamma", "reward_activation",
+                                                     "horizon")},
             normalize_observations=bool(sm_cfg.get("normalize_observations")), device=device,
         )
         save_labels(labels, label_dir, meta={"teacher": teacher.config(), "query": query})
@@ -526,7 +536,7 @@ def run(cfg: DictConfig) -> dict:
         return out
     t0 = time.perf_counter()
     scores, block_ids = stage_blocks(cfg, run_dir, trajs, model)
-    returns = true_return(trajs, discount=float(cfg.labels.discount))
+    returns = true_return(trajs, discount=float(cfg.labels.discount), horizon=_optional_int(cfg.labels.get("horizon")))
     quality = {f"{k}_return": v for k, v in correlations(scores, returns).items()}
     if ("next", "success") in trajs.keys(True):
         succ = SuccessTeacher().succeeded(trajs).float()

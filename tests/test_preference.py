@@ -432,3 +432,61 @@ def test_top_k_mean_picks_the_highest_scores_and_rejects_bad_k():
         top_k_mean(scores, success, 5)
     with pytest.raises(ValueError, match="differ"):
         top_k_mean(scores, success[:3], 2)
+
+
+def test_stop_rule_horizon_fills_with_the_last_reward_unless_terminated(tmp_path, toy):
+    """``horizon=``: ``sum_{h<n} gamma^h r_h + r_{n-1} sum_{h=n}^{H'-1} gamma^h`` for trajectories not
+    terminated at their last step, the plain sum otherwise; full-length data scores as without it."""
+    plain = ScoreModel(3, 2, num_cells=16, num_members=2, gamma=0.9, seed=0)
+    filled = ScoreModel(3, 2, num_cells=16, num_members=2, gamma=0.9, horizon=40, seed=0)
+    filled.load_state_dict(plain.state_dict())
+    trajs = toy[:6].clone()
+    steps = trajs.batch_size[1]
+    lengths = torch.tensor([steps, 20, 3, 1, 0, 12])
+    trajs["mask"] = torch.arange(steps).expand(6, steps) < lengths[:, None]
+    terminated = torch.zeros(6, steps, dtype=torch.bool)
+    terminated[5, 11] = True  # trajectory 5 ends in a terminal state: no fill
+    trajs["next", "terminated"] = terminated.reshape(trajs["next", "terminated"].shape)
+    with torch.no_grad():
+        rewards = plain.step_rewards(trajs)  # [C, 6, H]
+        expected = plain.score(trajs, members=True).clone()
+        for i, n in enumerate(lengths.tolist()):
+            if n and i != 5:
+                expected[:, i] += rewards[:, i, n - 1] * sum(0.9**h for h in range(n, 40))
+        torch.testing.assert_close(filled.score(trajs, members=True), expected)
+        # the same through a prefix view (what the Bradley-Terry loss reads)
+        labels = TensorDict({"tau1": trajs}, batch_size=[6])
+        torch.testing.assert_close(filled.with_prefix("tau1", score_key="s")(labels)["s"], expected.mean(0))
+        # no termination flag (the diffuser's samples): every trajectory is filled
+        bare = trajs.select(*KEYS)
+        assert float(filled.score(bare)[5]) != pytest.approx(float(expected.mean(0)[5]))
+        # full-length trajectories: the paper's sum
+        full = toy[:4].select(*KEYS).clone()
+        full["mask"][:] = True
+        same = ScoreModel(3, 2, num_cells=16, num_members=2, gamma=0.9, horizon=steps, seed=0)
+        same.load_state_dict(plain.state_dict())
+        torch.testing.assert_close(same.score(full), plain.score(full))
+    loaded = load_score_model(save_score_model(filled, tmp_path / "h.pt"))
+    assert loaded.horizon == 40
+    torch.testing.assert_close(score_trajectories(loaded, trajs), score_trajectories(filled, trajs))
+    with pytest.raises(ValueError, match="horizon"):
+        load_score_model(tmp_path / "h.pt", model=ScoreModel(3, 2, num_cells=16, num_members=2, gamma=0.9))
+    with pytest.raises(ValueError, match="horizon must be >= 1"):
+        ScoreModel(3, 2, horizon=0)
+
+
+def test_stop_rule_horizon_removes_the_length_advantage(toy):
+    """With positive per-step rewards a trajectory cut short by a stop rule scores below its full
+    version under the plain sum, and the same under the fill when its steps are alike."""
+    model = ScoreModel(3, 2, num_cells=16, reward_activation="sigmoid", seed=0)
+    filled = ScoreModel(3, 2, num_cells=16, reward_activation="sigmoid", horizon=toy.batch_size[1], seed=0)
+    filled.load_state_dict(model.state_dict())
+    steady = toy[:1].select(*KEYS).clone()
+    steady["mask"][:] = True
+    steady["observation"][:] = steady["observation"][:, :1]  # the same state and action at every step
+    steady["action"][:] = steady["action"][:, :1]
+    short = steady.clone()
+    short["mask"][0, 10:] = False
+    with torch.no_grad():
+        assert float(model.score(short)[0]) < float(model.score(steady)[0])
+        torch.testing.assert_close(filled.score(short), filled.score(steady))

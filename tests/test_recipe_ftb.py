@@ -142,6 +142,9 @@ def test_bad_config_is_a_clear_error(tmp_path):
     with pytest.raises(ValueError, match="max_frame_stack_error is a Meta-World check"):
         recipe.run(_cfg(tmp_path / "f", "flow.max_frame_stack_error=0.02"))
     assert not (tmp_path / "f").exists()  # refused before anything is written
+    with pytest.raises(ValueError, match="score_model.horizon is the stop-rule fill"):
+        recipe.run(_cfg(tmp_path / "h", "env.name=hopper", "score_model.horizon=1000"))
+    assert not (tmp_path / "h").exists()
     with pytest.raises(ValueError, match=r"labels.query.strategy='margin': choose one of \['random'"):
         recipe.run(_cfg(tmp_path / "g", "labels.query.strategy=margin"))
     assert not (tmp_path / "g").exists()
@@ -168,6 +171,16 @@ def test_active_query_labels_stage(tmp_path):
     labels, meta = load_labels(tmp_path / "checkpoints" / "labels")
     pairs = {tuple(sorted(p)) for p in zip(labels["index0"].tolist(), labels["index1"].tolist(), strict=True)}
     assert len(pairs) == 30 and meta["query"]["strategy"] == "entropy"
+
+
+def test_stop_rule_horizon_reaches_teacher_score_model_and_checkpoint(tmp_path):
+    """``labels.horizon`` / ``score_model.horizon``: the teacher and s_psi both use the stop-rule fill."""
+    recipe = _recipe()
+    out = recipe.run(_cfg(tmp_path, "stop_after=blocks", "labels.horizon=20", "score_model.horizon=20"))
+    stages = json.loads((tmp_path / "stages.json").read_text())
+    assert stages["labels"]["teacher"] == "return(horizon=20)"
+    saved = torch.load(tmp_path / "checkpoints" / "score_model.pt", weights_only=True)
+    assert saved["hparams"]["horizon"] == 20 and out["score_quality"]["spearman_return"] > 0.5
 
 
 def test_stop_after_a_stage_then_resume_to_the_end(tmp_path):

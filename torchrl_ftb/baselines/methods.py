@@ -110,7 +110,7 @@ def train_reward_model(
         labels: preference labels (docs/conventions.md).
         num_members: ensemble size (1: IQL + r_ψ / 10%BC by score; > 1: OPRL).
         model: extra ``ScoreModel`` keyword arguments (``num_cells``, ``num_layers``, ``gamma``,
-            ``reward_activation``)
+            ``reward_activation``, ``horizon``)
             and ``normalize_observations`` (fit the model's observation normaliser on ``trajs``
             before training; default off).
         training: ``train_score_model`` keyword arguments (``steps``, ``lr``, ``batch_size`` ...).

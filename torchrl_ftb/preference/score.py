@@ -5,6 +5,14 @@ step and summed over the valid steps of a padded trajectory batch ``[N, H]`` (+ 
 This is the *one* score definition of the project (blocks, flow filter, reports all use it).
 ``gamma`` (default 1.0) is stored in the model (a buffer, so it is saved in checkpoints).
 
+``horizon`` (default ``None``: the paper's sum) is the stop-rule fill of the scripted teachers'
+:func:`~torchrl_ftb.data.labels.true_return`: a trajectory of ``n < horizon`` valid steps whose
+last step is not ``("next", "terminated")`` keeps earning its last step's ``r_psi`` until step
+``horizon - 1``. On Meta-World a success ends the episode (a stop rule, not a terminal state)
+while a failure runs the full 500 steps, so the plain sum lets a failure collect score by lasting
+longer; with the fill every trajectory is scored over the same horizon. Where all trajectories
+have ``horizon`` steps the two definitions agree.
+
 The per-step reward is exposed as :attr:`ScoreModel.reward_module`, a
 :class:`~tensordict.nn.TensorDictModule` ``(observation, action) -> ("next", "reward")`` for
 relabelling flat transitions (e.g. IQL + ``r_psi``). With ``num_members > 1`` the reward is an
@@ -175,6 +183,13 @@ class ScoreModel(TensorDictModuleBase):
             Positive per-step rewards make a longer trajectory of equal per-step quality score
             higher, the prior of tasks whose rewards are positive (Meta-World, locomotion).
         num_members: ensemble size (1 = a single MLP).
+        horizon: stop-rule fill (module docstring): score every full trajectory as if it lasted
+            ``horizon`` steps, repeating its last step's ``r_psi``, unless that step is
+            ``terminated_key``. A batch without ``terminated_key`` (e.g. the diffuser's samples)
+            counts as never terminated, so use it only for tasks without terminal states
+            (Meta-World), not where episodes end by falling (locomotion). ``None`` (default): the
+            paper's sum over the valid steps.
+        terminated_key: per-step termination flag read by ``horizon`` (relative to ``prefix``).
         prefix: nested key prefix under which the trajectories are read.
         observation_key, action_key, mask_key: entry names (relative to ``prefix``).
         score_key: output key for the score (at the root).
@@ -204,6 +219,8 @@ class ScoreModel(TensorDictModuleBase):
         gamma: float = 1.0,
         reward_activation: str = "identity",
         num_members: int = 1,
+        horizon: int | None = None,
+        terminated_key: NestedKey = ("next", "terminated"),
         prefix: NestedKey | Sequence = (),
         observation_key: NestedKey = "observation",
         action_key: NestedKey = "action",
@@ -220,11 +237,15 @@ class ScoreModel(TensorDictModuleBase):
             )
         if not 0.0 < float(gamma) <= 1.0:
             raise ValueError(f"ScoreModel: gamma must be in (0, 1], got {gamma}")
+        if horizon is not None and int(horizon) < 1:
+            raise ValueError(f"ScoreModel: horizon must be >= 1 or None, got {horizon}")
+        self.horizon = None if horizon is None else int(horizon)
+        self.terminated_key = terminated_key
         self.hparams = {
             "observation_dim": int(observation_dim), "action_dim": int(action_dim),
             "num_cells": int(num_cells), "num_layers": int(num_layers),
             "num_members": int(num_members), "gamma": float(gamma),
-            "reward_activation": str(reward_activation),
+            "reward_activation": str(reward_activation), "horizon": self.horizon,
         }
         with torch.random.fork_rng(devices=[]):
             if seed is not None:
@@ -333,7 +354,30 @@ class ScoreModel(TensorDictModuleBase):
         traj = torch.arange(batch.numel(), device=mask.device).reshape(batch)[where[:-1]]
         per_member = rewards.new_zeros(rewards.shape[0], batch.numel()).index_add(1, traj, discounted)
         per_member = per_member.reshape(rewards.shape[0], *batch)
+        if self.horizon is not None:
+            per_member = per_member + self._stop_rule_fill(trajs, mask)
         return per_member if members else per_member.mean(0)
+
+    def _stop_rule_fill(self, trajs: TensorDictBase, mask: torch.Tensor) -> torch.Tensor:
+        # r_psi of each trajectory's last valid step times sum_{h=last+1}^{horizon-1} gamma^h, [C, *B];
+        # zero for terminated, empty or already >= horizon trajectories
+        obs_key, act_key, _ = self._rel_keys
+        steps = mask.shape[-1]
+        position = torch.arange(steps, device=mask.device).expand_as(mask)
+        last = torch.where(mask, position, torch.full_like(position, -1)).amax(-1)  # [*B], -1: no valid step
+        index = last.clamp(min=0)[..., None]
+        obs = trajs.get(obs_key).gather(-2, index[..., None].expand(*index.shape, trajs.get(obs_key).shape[-1]))
+        act = trajs.get(act_key).gather(-2, index[..., None].expand(*index.shape, trajs.get(act_key).shape[-1]))
+        last_reward = self.reward_module.module.members(obs.squeeze(-2), act.squeeze(-2)).squeeze(-1)  # [C, *B]
+        span = max(self.horizon, steps) + 1
+        cum = torch.cat([self.gamma.new_zeros(1), torch.cumsum(self.discounts(span), 0)])  # cum[k] = sum_{h<k}
+        first = (last + 1).clamp(max=self.horizon)
+        fill = (cum[self.horizon] - cum[first]).to(last_reward.dtype)
+        keep = last >= 0
+        if self.terminated_key in trajs.keys(include_nested=True, leaves_only=True):
+            terminated = trajs.get(self.terminated_key).reshape(mask.shape).bool()
+            keep = keep & ~terminated.gather(-1, index).squeeze(-1)
+        return last_reward * (fill * keep)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         trajs = tensordict.get(self.prefix) if self.prefix else tensordict
@@ -448,7 +492,8 @@ def load_score_model(
         model = ScoreModel(hparams["observation_dim"], hparams["action_dim"], num_cells=hparams["num_cells"],
                            num_layers=hparams["num_layers"], num_members=hparams.get("num_members", 1),
                            gamma=hparams.get("gamma", 1.0),
-                           reward_activation=hparams.get("reward_activation", "identity"))
+                           reward_activation=hparams.get("reward_activation", "identity"),
+                           horizon=hparams.get("horizon"))
     differ = {k: (hparams[k], v) for k, v in model.hparams.items() if k in hparams and hparams[k] != v}
     if differ:
         raise ValueError(f"{path}: score-model checkpoint does not fit the model: (file, model) differ in {differ}")
