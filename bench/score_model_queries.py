@@ -154,28 +154,32 @@ def summary(results_dir: Path) -> str:
     return "\n".join(rows)
 
 
-def pooled(results_dirs: list[Path], keys: list[str] | None = None) -> str:
+def pooled(results_dirs: list[Path], keys: list[str] | None = None, metric: str = "spearman_return") -> str:
     """Markdown table: per task and result key, Spearman pooled over every label seed found in
     ``results_dirs`` (e.g. seeds 0-4 in ``bench/results`` and held-out seeds 5-9 elsewhere), as
     mean +- standard error of the mean, the seed count, and the per-directory means. A seed that
     appears twice for one key is an error (two directories made with the same seeds). ``keys``: only
-    these result keys (default: all). Results made before seeds were recorded ran seeds ``0..n-1``."""
+    these result keys (default: all). Results made before seeds were recorded ran seeds ``0..n-1``.
+    ``metric``: a per-seed list of the results (``spearman_return``, or ``spearman_success``,
+    ``top100_success``, ``top25_length`` where recorded; results without it are left out)."""
     table: dict[tuple[str, str], dict[int, float]] = {}
     parts: dict[tuple[str, str], list[str]] = {}
     for results_dir in results_dirs:
         for path in sorted(results_dir.glob("score_model_queries_*.json")):
             task = path.stem.removeprefix("score_model_queries_")
             for key, res in json.loads(path.read_text())["results"].items():
-                if keys is not None and key not in keys:
+                if (keys is not None and key not in keys) or metric not in res:
                     continue
                 res.setdefault("seeds", list(range(len(res["spearman_return"]))))
                 seeds = table.setdefault((task, key), {})
-                for seed, value in zip(res["seeds"], res["spearman_return"]):
+                values = res[metric]
+                for seed, value in zip(res["seeds"], values):
                     if seed in seeds:
                         raise ValueError(f"{path}: {key!r} label seed {seed} also in another directory")
                     seeds[seed] = value
-                parts.setdefault((task, key), []).append(f"{res['mean']:.3f} (seeds {min(res['seeds'])}-{max(res['seeds'])})")
-    rows = ["| task | result | seeds | pooled Spearman (mean ± s.e.) | per directory |", "|---|---|---|---|---|"]
+                parts.setdefault((task, key), []).append(
+                    f"{sum(values) / len(values):.3f} (seeds {min(res['seeds'])}-{max(res['seeds'])})")
+    rows = [f"| task | result | seeds | pooled {metric} (mean ± s.e.) | per directory |", "|---|---|---|---|---|"]
     for (task, key), seeds in sorted(table.items()):
         vals = torch.tensor(list(seeds.values()), dtype=torch.float64)
         se = (vals.std() / len(vals) ** 0.5).item() if len(vals) > 1 else float("nan")
@@ -221,9 +225,12 @@ def main() -> None:
     parser.add_argument("--pooled", nargs="+", default=None, metavar="DIR",
                         help="print Spearman pooled over the label seeds of these results directories and exit")
     parser.add_argument("--keys", nargs="+", default=None, help="with --pooled: only these result keys")
+    parser.add_argument("--metric", default="spearman_return",
+                        choices=["spearman_return", "spearman_success", "top100_success", "top25_length"],
+                        help="with --pooled: the per-seed value to pool")
     args = parser.parse_args()
     if args.pooled:
-        print(pooled([Path(d) for d in args.pooled], args.keys))
+        print(pooled([Path(d) for d in args.pooled], args.keys, args.metric))
         return
     if args.summary:
         print(summary(Path(args.out_dir)))
