@@ -42,7 +42,7 @@ from tensordict import TensorDict
 
 from torchrl_ftb.analysis import novelty, plot_flow_curves, plot_histograms
 from torchrl_ftb.data import atomic_torch_save, atomic_write_text, read_checkpoint, trajectories_to_flat
-from torchrl_ftb.data.labels import SuccessTeacher, load_labels, make_teacher, save_labels, true_return
+from torchrl_ftb.data.labels import SuccessTeacher, load_labels, make_teacher, save_labels
 from torchrl_ftb.datasets import dataset_kwargs, make_dataset
 from torchrl_ftb.diffusion import DiffusionSampler, load_diffuser, make_diffuser, run_settings, train_diffuser
 from torchrl_ftb.diffusion.train import CHECKPOINT_NAME
@@ -536,7 +536,7 @@ def run(cfg: DictConfig) -> dict:
         return out
     t0 = time.perf_counter()
     scores, block_ids = stage_blocks(cfg, run_dir, trajs, model)
-    returns = true_return(trajs, discount=float(cfg.labels.discount), horizon=_optional_int(cfg.labels.get("horizon")))
+    returns = teacher.returns(trajs)  # the teacher's own definition (discount, stop-rule fill)
     quality = {f"{k}_return": v for k, v in correlations(scores, returns).items()}
     if ("next", "success") in trajs.keys(True):
         succ = SuccessTeacher().succeeded(trajs).float()

@@ -51,6 +51,7 @@ from torchrl_ftb.data.trajectories import (
     atomic_directory,
     atomic_write_text,
     read_memmap_folder,
+    stop_rule_fill,
     validate_trajectories,
 )
 
@@ -129,26 +130,10 @@ def true_return(
                 "true_return: horizon= needs ('next', 'terminated') to tell stop rules from "
                 "terminations"
             )
-        lengths = mask.sum(-1)
-        last = (lengths - 1).clamp(min=0)
-        last_reward = reward.gather(-1, last[:, None]).squeeze(-1)
-        terminated = (
-            trajs.get(("next", "terminated"))
-            .reshape(mask.shape)
-            .gather(-1, last[:, None])
-            .squeeze(-1)
+        last, fill = stop_rule_fill(
+            mask, horizon=horizon, discount=discount, terminated=trajs.get(("next", "terminated"))
         )
-        span = max(horizon, steps)
-        cum = torch.cat(
-            [
-                torch.zeros(1, dtype=torch.float64, device=reward.device),
-                torch.cumsum(
-                    discount ** torch.arange(span, dtype=torch.float64, device=reward.device), 0
-                ),
-            ]
-        )
-        fill = cum[horizon] - cum[lengths.clamp(max=horizon)]  # sum_{h=n}^{horizon-1} gamma^h
-        ret = ret + torch.where(terminated, torch.zeros_like(fill), fill * last_reward)
+        ret = ret + fill * reward.gather(-1, last[:, None]).squeeze(-1)
     return ret.float()
 
 

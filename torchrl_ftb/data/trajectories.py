@@ -33,6 +33,7 @@ __all__ = [
     "FORMAT_VERSION",
     "REQUIRED_KEYS",
     "trajectory_lengths",
+    "stop_rule_fill",
     "validate_trajectories",
     "flat_to_trajectories",
     "trajectories_to_flat",
@@ -55,6 +56,52 @@ _BOOL_NEXT_KEYS = ("done", "terminated", "truncated", "success")
 def trajectory_lengths(td: TensorDictBase) -> torch.Tensor:
     """Number of valid steps of each trajectory of an ``[N, H]`` batch (``int64 [N]``)."""
     return td.get("mask").sum(-1)
+
+
+def stop_rule_fill(
+    mask: torch.Tensor,
+    *,
+    horizon: int,
+    discount: float = 1.0,
+    terminated: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Where and how much a trajectory cut short by a stop rule keeps earning up to ``horizon`` steps.
+
+    The one definition of the stop-rule fill shared by the teachers' true return and the score
+    model: a trajectory whose last valid step ``n - 1`` is not terminated keeps earning that step's
+    reward until step ``horizon - 1``, i.e. that reward times ``sum_{h=n}^{horizon-1} gamma^h``.
+
+    Args:
+        mask: ``bool [*B, H]`` valid steps.
+        horizon: the fill's horizon (>= 1).
+        discount: ``gamma`` in (0, 1].
+        terminated: optional ``bool [*B, H]`` per-step termination flags; a trajectory terminated
+            at its last valid step gets no fill (absent: none is).
+
+    Returns:
+        ``(last, weight)``: the index of each trajectory's last valid step (``int64 [*B]``, 0 where
+        there is none) and the weight of its reward (``float64 [*B]``; 0 for empty, terminated or
+        already ``>= horizon`` trajectories).
+
+    Example:
+        >>> mask = torch.tensor([[True, True, False, False], [True, True, True, True]])
+        >>> stop_rule_fill(mask, horizon=6)
+        (tensor([1, 3]), tensor([4., 2.], dtype=torch.float64))
+    """
+    if horizon < 1:
+        raise ValueError(f"stop_rule_fill: horizon must be >= 1, got {horizon}")
+    steps = mask.shape[-1]
+    position = torch.arange(steps, device=mask.device).expand_as(mask)
+    last = torch.where(mask, position, torch.full_like(position, -1)).amax(-1)  # -1: no valid step
+    span = max(horizon, steps)
+    weights = float(discount) ** torch.arange(span, dtype=torch.float64, device=mask.device)
+    cum = torch.cat([weights.new_zeros(1), torch.cumsum(weights, 0)])  # cum[k] = sum_{h<k} gamma^h
+    weight = cum[horizon] - cum[(last + 1).clamp(max=horizon)]
+    keep = last >= 0
+    last = last.clamp(min=0)
+    if terminated is not None:
+        keep = keep & ~terminated.reshape(mask.shape).bool().gather(-1, last[..., None]).squeeze(-1)
+    return last, weight * keep
 
 
 def validate_trajectories(

@@ -41,7 +41,9 @@ from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.modules import MLP
 
-from torchrl_ftb.data.trajectories import atomic_torch_save, observation_statistics, read_checkpoint
+from torchrl_ftb.data.trajectories import (
+    atomic_torch_save, observation_statistics, read_checkpoint, stop_rule_fill,
+)
 
 __all__ = [
     "NORMALIZED_SCORE_KEY", "REWARD_ACTIVATIONS", "SCORE_MODEL_CHECKPOINT", "ScoreModel", "load_score_model",
@@ -359,25 +361,17 @@ class ScoreModel(TensorDictModuleBase):
         return per_member if members else per_member.mean(0)
 
     def _stop_rule_fill(self, trajs: TensorDictBase, mask: torch.Tensor) -> torch.Tensor:
-        # r_psi of each trajectory's last valid step times sum_{h=last+1}^{horizon-1} gamma^h, [C, *B];
-        # zero for terminated, empty or already >= horizon trajectories
+        # r_psi of each trajectory's last valid step times its stop-rule weight, [C, *B]
         obs_key, act_key, _ = self._rel_keys
-        steps = mask.shape[-1]
-        position = torch.arange(steps, device=mask.device).expand_as(mask)
-        last = torch.where(mask, position, torch.full_like(position, -1)).amax(-1)  # [*B], -1: no valid step
-        index = last.clamp(min=0)[..., None]
-        obs = trajs.get(obs_key).gather(-2, index[..., None].expand(*index.shape, trajs.get(obs_key).shape[-1]))
-        act = trajs.get(act_key).gather(-2, index[..., None].expand(*index.shape, trajs.get(act_key).shape[-1]))
-        last_reward = self.reward_module.module.members(obs.squeeze(-2), act.squeeze(-2)).squeeze(-1)  # [C, *B]
-        span = max(self.horizon, steps) + 1
-        cum = torch.cat([self.gamma.new_zeros(1), torch.cumsum(self.discounts(span), 0)])  # cum[k] = sum_{h<k}
-        first = (last + 1).clamp(max=self.horizon)
-        fill = (cum[self.horizon] - cum[first]).to(last_reward.dtype)
-        keep = last >= 0
-        if self.terminated_key in trajs.keys(include_nested=True, leaves_only=True):
-            terminated = trajs.get(self.terminated_key).reshape(mask.shape).bool()
-            keep = keep & ~terminated.gather(-1, index).squeeze(-1)
-        return last_reward * (fill * keep)
+        keys = trajs.keys(include_nested=True, leaves_only=True)
+        terminated = trajs.get(self.terminated_key) if self.terminated_key in keys else None
+        last, weight = stop_rule_fill(mask, horizon=self.horizon, discount=float(self.gamma), terminated=terminated)
+        index = last[..., None, None]
+        obs, act = trajs.get(obs_key), trajs.get(act_key)
+        obs = obs.gather(-2, index.expand(*last.shape, 1, obs.shape[-1])).squeeze(-2)
+        act = act.gather(-2, index.expand(*last.shape, 1, act.shape[-1])).squeeze(-2)
+        last_reward = self.reward_module.module.members(obs, act).squeeze(-1)  # [C, *B]
+        return last_reward * weight.to(last_reward.dtype)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         trajs = tensordict.get(self.prefix) if self.prefix else tensordict
