@@ -1,0 +1,136 @@
+"""What can FTB's BC policy do with a hand-picked set? The ceiling of any ranking (issue #5, analysis).
+
+FTB's Meta-World policy is BC on (nearly) the s_psi top-100. Across the Table-1 cells its success
+follows which trajectories that top-100 holds (``bench/topk_success.py``), and even a top-100 of
+90-97 % successes leaves plate-slide at 0.55-0.75. This bench asks what the same BC (the recipe's
+``bc`` settings and actor, the same evaluation) does when the set is chosen with the dataset's own
+labels instead of s_psi, i.e. what a perfect score model could hand it:
+
+* ``on_task``: successful episodes of the task's own scripted policy (groups ``expert`` and
+  ``within``), up to ``--k`` of them drawn at random;
+* ``within``: successful ``within`` episodes only (the task's policy, a new goal every episode);
+* ``expert``: successful ``expert`` episodes only (the task's policy, *one* fixed goal, the
+  dataset seed's);
+* ``any``: up to ``--k`` successful episodes of any group (cross-env successes included, which come
+  from *other* tasks' scripted policies).
+
+Evaluation draws a new goal every episode (the recipe's ``eval`` settings), so ``expert`` vs
+``within`` measures how much goal diversity BC needs, and ``on_task`` vs ``any`` what cross-env
+successes in the set cost. Not a test; JSON with command, config, commit and machine:
+
+    python bench/bc_ceiling.py --tasks button-press-v3,plate-slide-v3 --subsets on_task,within,expert,any
+"""
+from __future__ import annotations
+
+import argparse
+import functools
+import sys
+import time
+from pathlib import Path
+
+import torch
+from omegaconf import OmegaConf
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from torchrl_ftb.data import observation_statistics, trajectories_to_flat  # noqa: E402
+from torchrl_ftb.data.labels import SuccessTeacher  # noqa: E402
+from torchrl_ftb.datasets import dataset_kwargs, make_dataset  # noqa: E402
+from torchrl_ftb.envs import make_env  # noqa: E402
+from torchrl_ftb.policy import evaluate_policy, make_bc_actor, make_transition_buffer, train_bc  # noqa: E402
+from torchrl_ftb.provenance import run_record, write_json  # noqa: E402
+
+SUBSETS = {
+    "on_task": ("expert", "within"),
+    "within": ("within",),
+    "expert": ("expert",),
+    "any": ("expert", "within", "random", "cross"),
+}
+
+
+def select(group: torch.Tensor, success: torch.Tensor, groups: list[str], subset: str, *, k: int,
+           generator: torch.Generator) -> torch.Tensor:
+    """Indices of up to ``k`` successful trajectories whose group is in ``SUBSETS[subset]``."""
+    wanted = torch.tensor([groups.index(g) for g in SUBSETS[subset]])
+    pool = torch.nonzero(success & torch.isin(group, wanted)).squeeze(-1)
+    if pool.numel() > k:
+        pool = pool[torch.randperm(pool.numel(), generator=generator)[:k]]
+    return pool
+
+
+def run_cell(task: str, subset: str, seed: int, cfg, *, k: int, episodes: int, steps: int) -> dict:
+    trajs, meta = make_dataset(task, **dataset_kwargs(task, cfg.dataset, progress=False,
+                                                      max_episode_steps=int(cfg.env.max_episode_steps)))
+    group = meta["per_trajectory"]["group"]
+    success = SuccessTeacher().succeeded(trajs)
+    idx = select(group, success, list(meta["groups"]), subset, k=k, generator=torch.Generator().manual_seed(seed))
+    if idx.numel() == 0:
+        return {"num_trajectories": 0, "success_rate": None, "note": "no successful trajectory in this subset"}
+    chosen = trajs[idx]
+    flat = trajectories_to_flat(chosen.select("observation", "action", "mask"))
+    loc, scale = observation_statistics(flat.get("observation"))
+    torch.manual_seed(seed)
+    obs_dim, act_dim = trajs.get("observation").shape[-1], trajs.get("action").shape[-1]
+    actor = make_bc_actor(obs_dim, act_dim, hidden=tuple(cfg.bc.hidden), obs_loc=loc, obs_scale=scale)
+    b = cfg.bc
+    t0 = time.perf_counter()
+    out = train_bc(actor, make_transition_buffer(flat, batch_size=int(b.batch_size), seed=seed), steps=steps,
+                   batch_size=int(b.batch_size), lr=float(b.lr), weight_decay=float(b.weight_decay), seed=seed,
+                   progress=False)
+    bc_s = time.perf_counter() - t0
+    eval_env = functools.partial(make_env, task, seed=int(cfg.eval.seed), max_episode_steps=int(cfg.env.max_episode_steps))
+    t0 = time.perf_counter()
+    ev = evaluate_policy(eval_env, actor, num_episodes=episodes, seed=int(cfg.eval.seed),
+                         max_steps=int(cfg.eval.max_steps), stop_on_success=True)
+    counts = torch.bincount(group[idx], minlength=len(meta["groups"])).tolist()
+    return {
+        "num_trajectories": int(idx.numel()), "num_transitions": int(flat.numel()),
+        "groups": dict(zip(meta["groups"], counts)), "final_loss": out["loss"],
+        "success_rate": float(ev["success_rate"]), "length_mean": float(ev["length_mean"]),
+        "num_episodes": int(ev["num_episodes"]), "bc_seconds": bc_s, "eval_seconds": time.perf_counter() - t0,
+        "dataset_path": meta.get("path"),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--tasks", default="button-press-v3,drawer-open-v3,plate-slide-v3,sweep-into-v3")
+    parser.add_argument("--subsets", default="on_task,within,expert,any")
+    parser.add_argument("--seeds", default="0", help="BC / subset-draw seeds")
+    parser.add_argument("--k", type=int, default=100, help="at most this many trajectories (FTB's top_k)")
+    parser.add_argument("--episodes", type=int, default=50, help="evaluation episodes per cell")
+    parser.add_argument("--steps", type=int, default=None, help="BC steps (default: the cpu preset's)")
+    parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "bc_ceiling.json")
+    args = parser.parse_args()
+    unknown = set(args.subsets.split(",")) - set(SUBSETS)
+    if unknown:
+        parser.error(f"--subsets: unknown {sorted(unknown)}; choose from {list(SUBSETS)}")
+    torch.set_num_threads(1)
+    cfg = OmegaConf.load(ROOT / "recipes" / "config" / "ftb_offline.yaml")
+    steps = args.steps if args.steps is not None else int(cfg.presets.cpu.bc_steps)
+    config = {**vars(args), "out": str(args.out), "steps": steps,
+              "bc": OmegaConf.to_container(cfg.bc), "eval": {"seed": int(cfg.eval.seed), "max_steps": int(cfg.eval.max_steps)}}
+    del config["bc"]["steps"], config["bc"]["checkpoint_every"]  # preset interpolations; steps above
+    record = {**run_record(config=config), "cells": {}}
+    if args.out.is_file():  # resume: keep finished cells of the same command
+        import json
+
+        old = json.loads(args.out.read_text())
+        record["cells"] = old.get("cells", {})
+    for task in args.tasks.split(","):
+        for subset in args.subsets.split(","):
+            for seed in (int(s) for s in args.seeds.split(",")):
+                key = f"{task}/{subset}/seed{seed}"
+                if key in record["cells"]:
+                    continue
+                cell = run_cell(task, subset, seed, cfg, k=args.k, episodes=args.episodes, steps=steps)
+                record["cells"][key] = cell
+                write_json(args.out, record)
+                print(f"{key}: {cell['num_trajectories']} trajectories {cell.get('groups')} -> success "
+                      f"{cell['success_rate']}", flush=True)
+    print(f"-> {args.out}")
+
+
+if __name__ == "__main__":
+    main()
