@@ -17,6 +17,12 @@ the task, seed and teacher; the cell records ``imported_from`` and the run's own
 
     python bench/table1.py --import-run outputs/exp/drawer-v2 --results-dir bench/results/table1_v2
 
+Compare one method under several configurations (one results directory each) task by task, with
+the per-seed scores (printed, not written):
+
+    python bench/table1.py --methods ftb --teacher success \
+        --compare uniform=bench/results/table1_v2 disagreement=bench/results/table1_v2_active
+
 Each cell writes ``bench/results/table1/<method>__<task>__<teacher>__seed<k>.json`` with the
 command, config (overrides + the run's resolved config), git commit, machine, wall time and
 score (Meta-World: success rate; locomotion: D4RL-normalised score; toy: mean return).
@@ -325,6 +331,39 @@ def render_flow_table(cells: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+def render_comparison(configs: dict[str, Path], *, teacher: str, method: str = "ftb") -> str:
+    """One method under several configurations (one results directory each), task by task.
+
+    Each cell: mean ± standard error over seeds (population std / sqrt(n)), ``n`` and the per-seed
+    scores in seed order, beside the paper's number; what the *best per task* and *one setting for
+    every task* questions of issue #5 need, read from the cell JSONs instead of copied by hand.
+    """
+    table: dict[str, dict[str, dict[int, float]]] = {}
+    for label, results_dir in configs.items():
+        for c in load_cells(results_dir):
+            if c["method"] == method and c.get("teacher", "return") == teacher:
+                table.setdefault(c["env"], {}).setdefault(label, {})[int(c["seed"])] = float(c["score"])
+    lines = [f"**{METHOD_NAMES.get(method, method)}, teacher `{teacher}`**: mean ± s.e. over seeds (n; per seed)",
+             "", "| task | " + " | ".join(configs) + " | paper |", "|---|" + "---|" * (len(configs) + 1)]
+    for task in sorted(table):
+        row = [task]
+        for label in configs:
+            per_seed = table[task].get(label, {})
+            if not per_seed:
+                row.append("—")
+                continue
+            vals = [per_seed[k] for k in sorted(per_seed)]
+            big = any(abs(v) > 2.0 for v in vals)
+            mean, std = _mean_std(vals)
+            seeds = " / ".join(_fmt(v, big=big) for v in vals)
+            row.append(f"{_fmt(mean, big=big)} ± {_fmt(std / math.sqrt(len(vals)), big=big)} (n={len(vals)}; {seeds})")
+        ptask = paper_task(task)
+        paper = PAPER_TABLE1.get(ptask, {}).get(method) if ptask else None
+        row.append("—" if paper is None else str(paper))
+        lines.append("| " + " | ".join(row) + " |")
+    return "\n".join(lines)
+
+
 def write_markdown(results_dir: Path, md_path: Path, *, section: str = "table1") -> None:
     """Replace the ``section``'s marked part of ``md_path`` (created or appended if absent), atomically."""
     start, end = markers(section)
@@ -377,8 +416,22 @@ def main(argv: Iterable[str] | None = None) -> int:
     parser.add_argument("--import-run", type=Path, nargs="+", default=None, metavar="RUN_DIR",
                         help="write the cells of finished recipe runs made outside the harness, then stop")
     parser.add_argument("--dry-run", action="store_true", help="list the cells and whether they are done")
+    parser.add_argument("--compare", nargs="+", default=None, metavar="LABEL=DIR",
+                        help="print one method (first of --methods) under several configurations, one results "
+                             "directory each, for --teacher, then stop")
     args = parser.parse_args(list(argv) if argv is not None else None)
 
+    if args.compare:
+        configs = {}
+        for item in args.compare:
+            label, sep, path = item.partition("=")
+            if not sep or not label or not path:
+                parser.error(f"--compare: expected LABEL=DIR, got {item!r}")
+            if not Path(path).is_dir():
+                parser.error(f"--compare: {path!r} is not a directory")
+            configs[label] = Path(path)
+        print(render_comparison(configs, teacher=args.teacher, method=args.methods[0]))
+        return 0
     if args.write_md:
         write_markdown(args.results_dir, args.md, section=args.section)
         return 0

@@ -215,6 +215,23 @@ def test_table1_markdown_between_markers(tmp_path):
     assert "| button-press-v3 | success | 0 | 2 | 37 | 0.90 / 0.30 | 10.0 → 12.5 | 100.0 → 140.0 | 300.0 → 320.0 | 1.00 | 20.0 | — |" in section
 
 
+def test_table1_compares_configurations_task_by_task(tmp_path):
+    table1 = load_script(ROOT / "bench" / "table1.py", "bench_table1")
+    dirs = {"a": tmp_path / "a", "b": tmp_path / "b"}
+    for label, scores in (("a", (0.5, 0.7)), ("b", (1.0,))):
+        for seed, score in enumerate(scores):
+            for teacher in ("success", "return"):
+                table1.write_cell_json(dirs[label] / f"ftb__plate-slide-v3__{teacher}__seed{seed}.json",
+                                       {"method": "ftb", "env": "plate-slide-v3", "seed": seed, "teacher": teacher,
+                                        "score": score if teacher == "success" else 0.0})
+    table = table1.render_comparison(dirs, teacher="success")
+    row = next(line for line in table.splitlines() if line.startswith("| plate-slide-v3"))
+    # mean ± s.e. (population std 0.1 / sqrt 2), per-seed scores, the paper's FTB number
+    assert row == "| plate-slide-v3 | 0.60 ± 0.07 (n=2; 0.50 / 0.70) | 1.00 ± 0.00 (n=1; 1.00) | 0.51±0.08 |"
+    with pytest.raises(SystemExit):  # a missing directory is refused by name
+        table1.main(["--methods", "ftb", "--compare", f"x={tmp_path / 'missing'}"])
+
+
 def test_table1_imports_a_finished_run_into_its_own_section(tmp_path):
     table1 = load_script(ROOT / "bench" / "table1.py", "bench_table1")
     run = tmp_path / "run"
