@@ -16,7 +16,9 @@ labels instead of s_psi, i.e. what a perfect score model could hand it:
 
 Evaluation draws a new goal every episode (the recipe's ``eval`` settings), so ``expert`` vs
 ``within`` measures how much goal diversity BC needs, and ``on_task`` vs ``any`` what cross-env
-successes in the set cost. Not a test; JSON with command, config, commit and machine:
+successes in the set cost. ``--obs-stats dataset`` z-scores the actor's observations with the whole
+dataset's mean/std instead of the chosen set's (a one-goal set has near-constant goal dims, whose
+floored std turns a new goal into inputs of hundreds of standard deviations). Not a test; JSON with command, config, commit and machine:
 
     python bench/bc_ceiling.py --tasks button-press-v3,plate-slide-v3 --subsets on_task,within,expert,any
 """
@@ -59,7 +61,8 @@ def select(group: torch.Tensor, success: torch.Tensor, groups: list[str], subset
     return pool
 
 
-def run_cell(task: str, subset: str, seed: int, cfg, *, k: int, episodes: int, steps: int) -> dict:
+def run_cell(task: str, subset: str, seed: int, cfg, *, k: int, episodes: int, steps: int,
+             obs_stats: str = "subset") -> dict:
     trajs, meta = make_dataset(task, **dataset_kwargs(task, cfg.dataset, progress=False,
                                                       max_episode_steps=int(cfg.env.max_episode_steps)))
     group = meta["per_trajectory"]["group"]
@@ -69,7 +72,9 @@ def run_cell(task: str, subset: str, seed: int, cfg, *, k: int, episodes: int, s
         return {"num_trajectories": 0, "success_rate": None, "note": "no successful trajectory in this subset"}
     chosen = trajs[idx]
     flat = trajectories_to_flat(chosen.select("observation", "action", "mask"))
-    loc, scale = observation_statistics(flat.get("observation"))
+    # the actor's observation z-score: from the BC set itself (the recipe's) or from the whole dataset
+    source = flat if obs_stats == "subset" else trajectories_to_flat(trajs.select("observation", "action", "mask"))
+    loc, scale = observation_statistics(source.get("observation"))
     torch.manual_seed(seed)
     obs_dim, act_dim = trajs.get("observation").shape[-1], trajs.get("action").shape[-1]
     actor = make_bc_actor(obs_dim, act_dim, hidden=tuple(cfg.bc.hidden), obs_loc=loc, obs_scale=scale)
@@ -101,6 +106,8 @@ def main() -> None:
     parser.add_argument("--k", type=int, default=100, help="at most this many trajectories (FTB's top_k)")
     parser.add_argument("--episodes", type=int, default=50, help="evaluation episodes per cell")
     parser.add_argument("--steps", type=int, default=None, help="BC steps (default: the cpu preset's)")
+    parser.add_argument("--obs-stats", choices=("subset", "dataset"), default="subset",
+                        help="the BC actor's observation mean/std: of the chosen set (the recipe's) or of the dataset")
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "bc_ceiling.json")
     args = parser.parse_args()
     unknown = set(args.subsets.split(",")) - set(SUBSETS)
@@ -117,6 +124,9 @@ def main() -> None:
         import json
 
         old = json.loads(args.out.read_text())
+        same = {"k", "episodes", "steps", "obs_stats"}
+        if any(old.get("config", {}).get(key, parser.get_default(key)) != config[key] for key in same):
+            parser.error(f"{args.out} holds cells of other options ({sorted(same)}): pass another --out")
         record["cells"] = old.get("cells", {})
     for task in args.tasks.split(","):
         for subset in args.subsets.split(","):
@@ -124,7 +134,8 @@ def main() -> None:
                 key = f"{task}/{subset}/seed{seed}"
                 if key in record["cells"]:
                     continue
-                cell = run_cell(task, subset, seed, cfg, k=args.k, episodes=args.episodes, steps=steps)
+                cell = run_cell(task, subset, seed, cfg, k=args.k, episodes=args.episodes, steps=steps,
+                                obs_stats=args.obs_stats)
                 record["cells"][key] = cell
                 write_json(args.out, record)
                 print(f"{key}: {cell['num_trajectories']} trajectories {cell.get('groups')} -> success "

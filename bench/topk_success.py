@@ -7,7 +7,10 @@ bound what BC can copy. For each Table-1 cell given (``bench/table1.py`` JSONs) 
 directory still exists, this reads the run's own scores (``checkpoints/blocks.pt``, no
 training), the dataset's per-trajectory success, and reports the top-k success share
 (:func:`torchrl_ftb.preference.top_k_mean`, what the recipe records as
-``score_quality.top_k_success`` since session 14) next to the cell's policy success. Cells whose
+``score_quality.top_k_success`` since session 14) next to the cell's policy success, and which of the
+generator's behaviour groups the top-k comes from (Meta-World: ``expert`` = the task's policy on one
+goal, ``within`` = the same on a new goal every episode, ``random``, ``cross`` = other tasks'
+policies) with the successes of each. Cells whose
 run directory is gone are listed as skipped. JSON (command, config, commit, machine) and a
 scatter plot of policy success against the top-k success share. Not a test.
 
@@ -42,12 +45,13 @@ def cell_report(cell: dict, run_dir: Path, cache: dict) -> dict:
     name = str(cfg.env.name)
     key = (name, json.dumps(OmegaConf.to_container(cfg.dataset, resolve=True), sort_keys=True))
     if key not in cache:
-        trajs, _ = make_dataset(name, **dataset_kwargs(name, cfg.dataset, progress=False,
-                                                       max_episode_steps=int(cfg.env.max_episode_steps)))
+        trajs, meta = make_dataset(name, **dataset_kwargs(name, cfg.dataset, progress=False,
+                                                          max_episode_steps=int(cfg.env.max_episode_steps)))
         if ("next", "success") not in trajs.keys(True):
             raise ValueError(f"{run_dir}: the dataset of {name!r} has no ('next', 'success') flag (Meta-World only)")
-        cache[key] = SuccessTeacher().succeeded(trajs).float(), trajectory_lengths(trajs).float()
-    success, lengths = cache[key]
+        groups = (meta["per_trajectory"]["group"], list(meta["groups"])) if "per_trajectory" in meta else None
+        cache[key] = SuccessTeacher().succeeded(trajs).float(), trajectory_lengths(trajs).float(), groups
+    success, lengths, groups = cache[key]
     blocks = torch.load(run_dir / "checkpoints" / "blocks.pt", weights_only=True)
     scores = blocks["scores"]
     if scores.shape != success.shape:
@@ -55,9 +59,18 @@ def cell_report(cell: dict, run_dir: Path, cache: dict) -> dict:
                          f"{success.numel()} trajectories")
     k = int(cfg.flow.top_k)
     flow = cell["metrics"]["flow"]
+    composition = {}
+    if groups is not None:  # which behaviour the top-k comes from (the generator's groups), and its successes
+        top = scores.topk(min(k, scores.numel())).indices
+        group, names = groups
+        composition = {
+            "top_k_groups": {n: int((group[top] == i).sum()) for i, n in enumerate(names)},
+            "top_k_group_successes": {n: int(success[top][group[top] == i].sum()) for i, n in enumerate(names)},
+        }
     return {
         "env": name, "teacher": str(cfg.labels.teacher), "seed": int(cfg.seed),
         "labels": str(OmegaConf.select(cfg, "labels.query.strategy", default="random")),
+        "score_horizon": OmegaConf.select(cfg, "score_model.horizon", default=None),
         "top_k": k, "top_k_success": top_k_mean(scores, success, k), "dataset_success": float(success.mean()),
         "spearman_success": correlations(scores, success)["spearman"],
         # the same share for other k, and how long the top-scored and the (un)successful trajectories are
@@ -66,6 +79,7 @@ def cell_report(cell: dict, run_dir: Path, cache: dict) -> dict:
         "length_mean_success": float(lengths[success > 0].mean()) if bool((success > 0).any()) else None,
         "length_mean_failure": float(lengths[success == 0].mean()) if bool((success == 0).any()) else None,
         "fraction_generated_in_final": float(flow["fraction_generated_in_final"]),
+        **composition,
         "policy_success": float(cell["metrics"]["eval"]["success_rate"]),
         "run_dir": str(run_dir),
     }
@@ -112,8 +126,10 @@ def main() -> None:
             continue
         rep = cell_report(cell, run_dir, cache)
         record["cells"][str(path)] = rep
+        groups = " ".join(f"{g} {n}/{rep['top_k_group_successes'][g]}" for g, n in rep.get("top_k_groups", {}).items())
         print(f"{rep['env']} {rep['teacher']} {rep['labels']} seed {rep['seed']}: top-k success {rep['top_k_success']:.2f} "
-              f"(dataset {rep['dataset_success']:.2f}) -> policy {rep['policy_success']:.2f}", flush=True)
+              f"(dataset {rep['dataset_success']:.2f}; groups, count/successes: {groups}) -> policy "
+              f"{rep['policy_success']:.2f}", flush=True)
     rows = list(record["cells"].values())
     if len(rows) >= 2:
         c = correlations(torch.tensor([r["top_k_success"] for r in rows]),
