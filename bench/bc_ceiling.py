@@ -61,13 +61,17 @@ def select(group: torch.Tensor, success: torch.Tensor, groups: list[str], subset
     return pool
 
 
-def run_cell(task: str, subset: str, seed: int, cfg, *, k: int, episodes: int, steps: int,
-             obs_stats: str = "subset") -> dict:
+def load_task(task: str, cfg) -> tuple:
+    """The task's cached dataset, its per-trajectory group and success."""
     trajs, meta = make_dataset(task, **dataset_kwargs(task, cfg.dataset, progress=False,
                                                       max_episode_steps=int(cfg.env.max_episode_steps)))
-    group = meta["per_trajectory"]["group"]
-    success = SuccessTeacher().succeeded(trajs)
-    idx = select(group, success, list(meta["groups"]), subset, k=k, generator=torch.Generator().manual_seed(seed))
+    return trajs, meta, meta["per_trajectory"]["group"], SuccessTeacher().succeeded(trajs)
+
+
+def run_cell(task: str, idx: torch.Tensor, seed: int, cfg, data: tuple, *, episodes: int, steps: int,
+             obs_stats: str = "subset") -> dict:
+    """BC (the recipe's settings) on trajectories ``idx`` of the task's dataset, then evaluation."""
+    trajs, meta, group, success = data
     if idx.numel() == 0:
         return {"num_trajectories": 0, "success_rate": None, "note": "no successful trajectory in this subset"}
     chosen = trajs[idx]
@@ -89,9 +93,11 @@ def run_cell(task: str, subset: str, seed: int, cfg, *, k: int, episodes: int, s
     ev = evaluate_policy(eval_env, actor, num_episodes=episodes, seed=int(cfg.eval.seed),
                          max_steps=int(cfg.eval.max_steps), stop_on_success=True)
     counts = torch.bincount(group[idx], minlength=len(meta["groups"])).tolist()
+    succ = [int(success[idx][group[idx] == i].sum()) for i in range(len(meta["groups"]))]
     return {
         "num_trajectories": int(idx.numel()), "num_transitions": int(flat.numel()),
-        "groups": dict(zip(meta["groups"], counts)), "final_loss": out["loss"],
+        "groups": dict(zip(meta["groups"], counts)), "group_successes": dict(zip(meta["groups"], succ)),
+        "final_loss": out["loss"],
         "success_rate": float(ev["success_rate"]), "length_mean": float(ev["length_mean"]),
         "num_episodes": int(ev["num_episodes"]), "bc_seconds": bc_s, "eval_seconds": time.perf_counter() - t0,
         "dataset_path": meta.get("path"),
@@ -103,6 +109,9 @@ def main() -> None:
     parser.add_argument("--tasks", default="button-press-v3,drawer-open-v3,plate-slide-v3,sweep-into-v3")
     parser.add_argument("--subsets", default="on_task,within,expert,any")
     parser.add_argument("--seeds", default="0", help="BC / subset-draw seeds")
+    parser.add_argument("--run-dirs", nargs="+", type=Path, default=None,
+                        help="instead of the subsets: BC on the top --k of each FTB run's own s_psi scores "
+                             "(checkpoints/blocks.pt; the run's task and seed), i.e. its final set without the flow")
     parser.add_argument("--k", type=int, default=100, help="at most this many trajectories (FTB's top_k)")
     parser.add_argument("--episodes", type=int, default=50, help="evaluation episodes per cell")
     parser.add_argument("--steps", type=int, default=None, help="BC steps (default: the cpu preset's)")
@@ -128,18 +137,33 @@ def main() -> None:
         if any(old.get("config", {}).get(key, parser.get_default(key)) != config[key] for key in same):
             parser.error(f"{args.out} holds cells of other options ({sorted(same)}): pass another --out")
         record["cells"] = old.get("cells", {})
-    for task in args.tasks.split(","):
-        for subset in args.subsets.split(","):
-            for seed in (int(s) for s in args.seeds.split(",")):
-                key = f"{task}/{subset}/seed{seed}"
-                if key in record["cells"]:
-                    continue
-                cell = run_cell(task, subset, seed, cfg, k=args.k, episodes=args.episodes, steps=steps,
-                                obs_stats=args.obs_stats)
-                record["cells"][key] = cell
-                write_json(args.out, record)
-                print(f"{key}: {cell['num_trajectories']} trajectories {cell.get('groups')} -> success "
-                      f"{cell['success_rate']}", flush=True)
+    jobs = []  # (key, task, seed, selection)
+    if args.run_dirs:
+        for run_dir in args.run_dirs:
+            run_cfg = OmegaConf.load(run_dir / "config.yaml")
+            scores = torch.load(run_dir / "checkpoints" / "blocks.pt", weights_only=True)["scores"]
+            jobs.append((f"{run_cfg.env.name}/s_psi_top{args.k}/{run_dir}", str(run_cfg.env.name), int(run_cfg.seed),
+                         lambda data, scores=scores: scores.topk(min(args.k, scores.numel())).indices))
+    else:
+        for task in args.tasks.split(","):
+            for subset in args.subsets.split(","):
+                for seed in (int(s) for s in args.seeds.split(",")):
+                    jobs.append((f"{task}/{subset}/seed{seed}", task, seed,
+                                 lambda data, subset=subset, seed=seed: select(
+                                     data[2], data[3], list(data[1]["groups"]), subset, k=args.k,
+                                     generator=torch.Generator().manual_seed(seed))))
+    datasets: dict = {}
+    for key, task, seed, selection in jobs:
+        if key in record["cells"]:
+            continue
+        if task not in datasets:
+            datasets[task] = load_task(task, cfg)
+        cell = run_cell(task, selection(datasets[task]), seed, cfg, datasets[task], episodes=args.episodes,
+                        steps=steps, obs_stats=args.obs_stats)
+        record["cells"][key] = cell
+        write_json(args.out, record)
+        print(f"{key}: {cell['num_trajectories']} trajectories {cell.get('groups')} -> success "
+              f"{cell['success_rate']}", flush=True)
     print(f"-> {args.out}")
 
 
