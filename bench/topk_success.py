@@ -135,6 +135,15 @@ def main() -> None:
         c = correlations(torch.tensor([r["top_k_success"] for r in rows]),
                          torch.tensor([r["policy_success"] for r in rows]))
         record["correlation_top_k_success_vs_policy"] = c
+        grouped = [r for r in rows if "top_k_group_successes" in r]
+        if len(grouped) >= 2:  # which successes the policy follows: per behaviour group, Spearman over cells
+            policy = torch.tensor([r["policy_success"] for r in grouped])
+            record["spearman_policy_vs_group_successes"] = {
+                g: correlations(torch.tensor([float(r["top_k_group_successes"][g]) for r in grouped]), policy)["spearman"]
+                for g in grouped[0]["top_k_group_successes"]
+                if len({r["top_k_group_successes"][g] for r in grouped}) > 1}  # a constant group has none
+            print("spearman(policy, successes of each group in the top-k):",
+                  {g: round(v, 3) for g, v in record["spearman_policy_vs_group_successes"].items()})
         png = plot(rows, args.out.with_suffix(".png"))
         record["plot"] = str(png.relative_to(ROOT) if png.is_relative_to(ROOT) else png)
         print(f"across {len(rows)} cells: pearson {c['pearson']:.3f}, spearman {c['spearman']:.3f}")
