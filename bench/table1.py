@@ -355,7 +355,8 @@ def render_comparison(configs: dict[str, Path], *, teacher: str, method: str = "
             vals = [per_seed[k] for k in sorted(per_seed)]
             big = any(abs(v) > 2.0 for v in vals)
             mean, std = _mean_std(vals)
-            seeds = " / ".join(_fmt(v, big=big) for v in vals)
+            labelled = sorted(per_seed) != list(range(len(vals)))  # name the seeds when some are missing
+            seeds = " / ".join((f"s{k} " if labelled else "") + _fmt(per_seed[k], big=big) for k in sorted(per_seed))
             row.append(f"{_fmt(mean, big=big)} ± {_fmt(std / math.sqrt(len(vals)), big=big)} (n={len(vals)}; {seeds})")
         ptask = paper_task(task)
         paper = PAPER_TABLE1.get(ptask, {}).get(method) if ptask else None
@@ -424,7 +425,7 @@ def main(argv: Iterable[str] | None = None) -> int:
     if args.compare:
         configs = {}
         for item in args.compare:
-            label, sep, path = item.partition("=")
+            label, sep, path = item.rpartition("=")  # labels may hold "=" (k=200)
             if not sep or not label or not path:
                 parser.error(f"--compare: expected LABEL=DIR, got {item!r}")
             if not Path(path).is_dir():

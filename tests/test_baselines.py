@@ -228,6 +228,10 @@ def test_table1_compares_configurations_task_by_task(tmp_path):
     row = next(line for line in table.splitlines() if line.startswith("| plate-slide-v3"))
     # mean ± s.e. (population std 0.1 / sqrt 2), per-seed scores, the paper's FTB number
     assert row == "| plate-slide-v3 | 0.60 ± 0.07 (n=2; 0.50 / 0.70) | 1.00 ± 0.00 (n=1; 1.00) | 0.51±0.08 |"
+    (dirs["b"] / "ftb__plate-slide-v3__success__seed0.json").rename(dirs["b"] / "ftb__plate-slide-v3__success__seed3.json")
+    cell = json.loads((dirs["b"] / "ftb__plate-slide-v3__success__seed3.json").read_text())
+    table1.write_cell_json(dirs["b"] / "ftb__plate-slide-v3__success__seed3.json", {**cell, "seed": 3})
+    assert "(n=1; s3 1.00)" in table1.render_comparison(dirs, teacher="success")  # a lone seed is named
     with pytest.raises(SystemExit):  # a missing directory is refused by name
         table1.main(["--methods", "ftb", "--compare", f"x={tmp_path / 'missing'}"])
 
