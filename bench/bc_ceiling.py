@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import functools
+import json
 import sys
 import time
 from pathlib import Path
@@ -130,8 +131,6 @@ def main() -> None:
     del config["bc"]["steps"], config["bc"]["checkpoint_every"]  # preset interpolations; steps above
     record = {**run_record(config=config), "cells": {}}
     if args.out.is_file():  # resume: keep finished cells of the same command
-        import json
-
         old = json.loads(args.out.read_text())
         same = {"k", "episodes", "steps", "obs_stats"}
         if any(old.get("config", {}).get(key, parser.get_default(key)) != config[key] for key in same):
