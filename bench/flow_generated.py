@@ -7,9 +7,18 @@ its true return as the flow recorded it, and for Meta-World its frame-stack erro
 "true return" belongs to a physically consistent trajectory. No sampling, no training. JSON to
 ``bench/results/flow_generated.json`` (command, config, commit, machine).
 
+With ``--horizon H`` it also re-scores the original top-k and the final set with the
+ground-truth oracle (:func:`torchrl_ftb.flow.masked_true_returns`) under two return definitions,
+the plain sum and the stop-rule fill to ``H`` steps (a success ends a Meta-World episode, so
+the plain sum pays a slow success more than a fast one), and the same again with the final
+set's generated trajectories whose frame-stack error exceeds ``--max-frame-stack-error``
+replaced by the originals they displaced: the improvement target (issue #5) on runs made
+before the recipe reported the fill (``flow.true_return_horizon``).
+
 Usage::
 
     python bench/flow_generated.py --run-dirs outputs/table1_v2/sweep-into-v3/return/ftb/seed1
+    python bench/flow_generated.py --run-dirs RUN... --horizon 500 --out bench/results/flow_improvement.json
 """
 from __future__ import annotations
 
@@ -24,16 +33,47 @@ from tensordict import TensorDict
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from torchrl_ftb.envs import metaworld_frame_stack_error  # noqa: E402
+from torchrl_ftb.envs import metaworld_frame_stack_error, true_reward_fn  # noqa: E402
+from torchrl_ftb.flow import masked_true_returns  # noqa: E402
 from torchrl_ftb.provenance import run_record, write_json  # noqa: E402
+
+
+def oracle_improvement(task: str, original: TensorDict, final: TensorDict, generated: torch.Tensor,
+                       rows: list[dict], *, horizon: int,
+                       max_frame_stack_error: float) -> tuple[dict[str, dict[str, float]], int]:
+    """Oracle mean/max true return, original top-k vs final set: plain, filled, and both on the final
+    set with physically invalid generated trajectories swapped back for the best originals it left out."""
+    fn = true_reward_fn(task)
+    before = masked_true_returns(original, fn, horizons=(None, horizon))  # [k, 2]: plain, filled
+    after = masked_true_returns(final, fn, horizons=(None, horizon))
+    bad = torch.zeros(final.batch_size[0], dtype=torch.bool)
+    stack = torch.tensor([r["frame_stack_error_m"] if r["frame_stack_error_m"] is not None else 0.0 for r in rows])
+    bad[generated.nonzero().squeeze(-1)] = stack > max_frame_stack_error
+    # the final set holds the best-scored originals (it is the top-k of the pool), so those it left out
+    # are the tail of the score-sorted original top-k
+    left_out = before[final.batch_size[0] - int(generated.sum()):]
+    checked = torch.cat([after[~bad], left_out[: int(bad.sum())]], 0)
+    out = {}
+    for j, name in enumerate(("plain", f"filled_{horizon}")):
+        for suffix, final_ret in (("", after), ("_frame_stack_checked", checked)):
+            out[name + suffix] = {
+                "true_return_mean_before": float(before[:, j].mean()), "true_return_max_before": float(before[:, j].max()),
+                "true_return_mean_after": float(final_ret[:, j].mean()), "true_return_max_after": float(final_ret[:, j].max()),
+            }
+    return out, int(bad.sum())
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--run-dirs", nargs="+", type=Path, required=True)
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "flow_generated.json")
+    parser.add_argument("--horizon", type=int, default=None,
+                        help="also report the oracle improvement, plain and with the stop-rule fill to this many steps")
+    parser.add_argument("--max-frame-stack-error", type=float, default=0.05,
+                        help="metres: generated trajectories above it count as physically invalid (data: 0)")
     args = parser.parse_args()
-    record = {**run_record(config={"run_dirs": [str(r) for r in args.run_dirs]}), "runs": {}}
+    record = {**run_record(config={"run_dirs": [str(r) for r in args.run_dirs], "horizon": args.horizon,
+                                   "max_frame_stack_error": args.max_frame_stack_error}), "runs": {}}
     for run in args.run_dirs:
         cfg = OmegaConf.load(run / "config.yaml")
         ckpt = torch.load(run / "checkpoints" / "flow.pt", weights_only=True)
@@ -50,8 +90,17 @@ def main() -> None:
                              "score": float(ckpt["scores"][j]),
                              "true_return": None if true is None else float(true[j]),
                              "frame_stack_error_m": stack[i]})
-        record["runs"][str(run)] = {"env": str(cfg.env.name), "seed": int(cfg.seed),
-                                    "teacher": str(cfg.labels.teacher), "generated_in_final_set": rows}
+        record["runs"][str(run)] = {"env": str(cfg.env.name), "seed": int(cfg.seed), "teacher": str(cfg.labels.teacher),
+                                    "top_k": int(cfg.flow.top_k), "generated_in_final_set": rows}
+        if args.horizon is not None:
+            original = TensorDict(ckpt["original"]["data"], batch_size=ckpt["original"]["batch_size"])
+            entry = record["runs"][str(run)]
+            entry["improvement"], entry["frame_stack_invalid_in_final_set"] = oracle_improvement(
+                str(cfg.env.name), original, final, generated, rows, horizon=args.horizon,
+                max_frame_stack_error=args.max_frame_stack_error)
+            print("  " + "; ".join(f"{name}: mean {v['true_return_mean_before']:.0f} -> {v['true_return_mean_after']:.0f}, "
+                                   f"max {v['true_return_max_before']:.0f} -> {v['true_return_max_after']:.0f}"
+                                   for name, v in record["runs"][str(run)]["improvement"].items()))
         print(f"{cfg.env.name} seed {cfg.seed}: " + "; ".join(
             f"len {r['length']} return {r['true_return']:.0f} frame-stack {r['frame_stack_error_m']}" for r in rows))
         write_json(args.out, record)

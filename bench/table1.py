@@ -300,16 +300,22 @@ def render_flow_table(cells: list[dict[str, Any]]) -> str:
     rows = [c for c in cells if c["method"] == "ftb" and isinstance(c.get("metrics", {}).get("flow"), dict)]
     if not rows:
         return ""
+    filled = any("true_return_filled_mean_before" in c["metrics"]["flow"] for c in rows)
     lines = [
         "**FTB cells: the flow (final set vs. the original top-k) and the cost.** `valid` / `accept`: "
         "share of the first flow step's samples that were valid / accepted; *true return* of "
         "generated Meta-World trajectories is the simulator-replayed reward (`metaworld_true_reward`, "
         "up to 16 % error, BENCHMARKS § datasets); locomotion: the oracle reward of the generated "
-        "(s, a) pairs. `wall`: the whole cell, other jobs sharing the 2 cores.",
+        "(s, a) pairs. `wall`: the whole cell, other jobs sharing the 2 cores."
+        + (" *Filled*: the same true return with the stop-rule fill (a trajectory shorter than "
+           "`flow.true_return_horizon` keeps earning its last reward; a faster success earns more)."
+           if filled else ""),
         "",
         "| task | teacher | seed | flow steps | accepted | valid / accept | score mean before → after | "
-        "true return mean before → after | true return max before → after | policy score | wall (min) | peak RSS (GB) |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "true return mean before → after | true return max before → after | "
+        + ("filled mean before → after | filled max before → after | " if filled else "")
+        + "policy score | wall (min) | peak RSS (GB) |",
+        "|---|---|---|---|---|---|---|---|---|" + ("---|---|" if filled else "") + "---|---|---|",
     ]
 
     def num(value: Any, fmt: str = "{:.1f}") -> str:
@@ -325,7 +331,10 @@ def render_flow_table(cells: list[dict[str, Any]]) -> str:
             f"{num(f.get('score_mean_before'))} → {num(f.get('score_mean_after'))} | "
             f"{num(f.get('true_return_mean_before'))} → {num(f.get('true_return_mean_after'))} | "
             f"{num(f.get('true_return_max_before'))} → {num(f.get('true_return_max_after'))} | "
-            f"{num(c.get('score'), '{:.2f}')} | {num(c.get('wall_time_s', 0) / 60)} | "
+            + (f"{num(f.get('true_return_filled_mean_before'))} → {num(f.get('true_return_filled_mean_after'))} | "
+               f"{num(f.get('true_return_filled_max_before'))} → {num(f.get('true_return_filled_max_after'))} | "
+               if filled else "")
+            + f"{num(c.get('score'), '{:.2f}')} | {num(c.get('wall_time_s', 0) / 60)} | "
             f"{num(_gb(c), '{:.2f}')} |"
         )
     return "\n".join(lines)

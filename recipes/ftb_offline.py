@@ -321,7 +321,8 @@ def stage_flow(cfg, run: RunDir, trajs, scores, block_ids, sampler, model, true_
     if run.done("flow"):
         ckpt = _load_ckpt(path, "torchrl_ftb.flow")
         out = {k: _td_from_ckpt(ckpt, path, k) for k in ("trajectories", "original", "generated")}
-        keys = ("stats", "summary", "scores", "original_scores", "source_step", "true_returns", "original_true_returns")
+        keys = ("stats", "summary", "scores", "original_scores", "source_step", "true_returns", "original_true_returns",
+                "filled_true_returns", "original_filled_true_returns")
         return {**out, **{k: ckpt.get(k) for k in keys}}
     f = cfg.flow
     flow = FlowToBetter(
@@ -332,6 +333,8 @@ def stage_flow(cfg, run: RunDir, trajs, scores, block_ids, sampler, model, true_
         max_abs_z=float(f.max_abs_z), action_tolerance=float(f.action_tolerance),
         min_length=None if f.min_length is None else int(f.min_length),
         true_reward_fn=true_reward_fn, batch_size=int(f.batch_size), seed=int(cfg.seed),
+        true_return_horizon=None if true_reward_fn is None or f.get("true_return_horizon") is None
+        else int(f.true_return_horizon),
         ensemble_rule=str(f.get("ensemble_rule", "mean")), logger=logger,
         validity_fn=None if f.get("max_frame_stack_error") is None
         else metaworld_frame_stack_check(float(f.max_frame_stack_error)),
@@ -342,7 +345,8 @@ def stage_flow(cfg, run: RunDir, trajs, scores, block_ids, sampler, model, true_
             "original": _td_to_ckpt(res.original), "generated": _td_to_ckpt(res.generated),
             "scores": res.scores, "original_scores": res.original_scores, "source_step": res.source_step,
             "stats": res.stats, "summary": res.summary, "true_returns": res.true_returns,
-            "original_true_returns": res.original_true_returns}
+            "original_true_returns": res.original_true_returns, "filled_true_returns": res.filled_true_returns,
+            "original_filled_true_returns": res.original_filled_true_returns}
     atomic_torch_save(ckpt, path)
     run.mark("flow", **res.summary)
     return {k: v for k, v in ckpt.items() if k != "kind"} | {
@@ -398,6 +402,9 @@ def final_table(metrics: dict) -> list[tuple[str, str]]:
     if "true_return_mean_before" in fl:
         rows.append(("true return top-k: before -> after",
                      f"{fl['true_return_mean_before']:.4g} -> {fl['true_return_mean_after']:.4g}"))
+    if "true_return_filled_mean_before" in fl:
+        rows.append((f"true return, stop-rule fill to {int(fl['true_return_horizon'])} steps: before -> after",
+                     f"{fl['true_return_filled_mean_before']:.4g} -> {fl['true_return_filled_mean_after']:.4g}"))
     rows += [
         ("flow steps run / planned", f"{int(fl['flow_steps_run'])} / {int(fl['flow_steps_planned'])}"),
         ("generated trajectories in final set", _fmt(fl["fraction_generated_in_final"])),
@@ -602,6 +609,10 @@ def run(cfg: DictConfig) -> dict:
         ret0, ret1 = flow["original_true_returns"], flow["true_returns"]
         plot_histograms({"original top-k": ret0, "after flow": ret1}, plots / "true_return_before_after.png",
                         xlabel="true return")
+    if flow.get("filled_true_returns") is not None:
+        plot_histograms({"original top-k": flow["original_filled_true_returns"], "after flow": flow["filled_true_returns"]},
+                        plots / "true_return_filled_before_after.png",
+                        xlabel=f"true return, stop-rule fill to {int(summary['true_return_horizon'])} steps")
         analysis["improvement"] = {k: v for k, v in summary.items() if k.startswith("true_return_")}
     if flow["generated"].batch_size[0]:
         nov = novelty(flow["generated"], trajs.select("observation", "action", "mask"), seed=int(cfg.seed))

@@ -5,6 +5,7 @@ import warnings
 
 import pytest
 import torch
+from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 
 from torchrl_ftb.analysis import dynamics_error, improvement, novelty, plot_flow_curves, plot_histograms, toy_oracle_step
@@ -14,6 +15,7 @@ from torchrl_ftb.flow import (
     adaptive_flow_steps,
     improves,
     masked_true_return,
+    masked_true_returns,
     normalized_scores,
     trajectory_validity,
 )
@@ -211,6 +213,35 @@ def test_adaptive_zero_steps_warns_and_uses_floor():
     with pytest.warns(UserWarning, match="adaptive flow steps"):
         res = flow(data, scores=scores, block_ids=ids)
     assert res.summary["flow_steps_adaptive"] == 0 and res.summary["flow_steps_planned"] == 1
+
+
+def test_true_return_stop_rule_fill_pays_a_faster_success_more():
+    # two trajectories of per-step reward 1 (the action): one done in 2 steps, one running all 4
+    td = TensorDict({"observation": torch.zeros(2, 4, 1), "action": torch.ones(2, 4, 1),
+                     "mask": torch.tensor([[True, True, False, False], [True] * 4])}, [2, 4])
+    reward = lambda o, a: a.sum(-1)  # noqa: E731
+    both = masked_true_returns(td, reward, horizons=(None, 6))
+    assert both.tolist() == [[2.0, 6.0], [4.0, 6.0]]  # plain: the longer earns more; filled: both run 6 steps
+    td["action"][0, 1] = 3.0  # the short one ends on a high reward, which it keeps earning
+    assert masked_true_return(td, reward, horizon=6).tolist() == [1.0 + 3.0 * 5, 6.0]
+    assert improvement(td[:1], td[1:], true_reward_fn=reward, horizon=6)["true_return_mean_before"] == 16.0
+    with pytest.raises(ValueError, match="horizon"):
+        masked_true_returns(td, reward, horizons=(0,))
+
+
+def test_flow_reports_the_filled_true_return_beside_the_plain_one():
+    data = make_toy_dataset(num_trajectories=40, horizon=H, seed=1)
+    flow = FlowToBetter(_shift_sampler(0.2), _sum_ax, top_k=8, threshold=1.0, flow_steps=2, progress=False,
+                        true_reward_fn=toy_reward, true_return_horizon=2 * H, early_stop_fraction=0.0)
+    res = flow(data)
+    filled = masked_true_return(res.trajectories, toy_reward, horizon=2 * H)
+    assert torch.allclose(res.filled_true_returns, filled, atol=1e-5)
+    assert torch.allclose(res.true_returns, masked_true_return(res.trajectories, toy_reward), atol=1e-5)
+    assert res.summary["true_return_filled_mean_after"] == pytest.approx(float(filled.mean()))
+    assert res.summary["true_return_horizon"] == 2 * H
+    assert {"true_return_filled_mean", "true_return_filled_max", "true_return_mean"} <= set(res.stats[0])
+    with pytest.raises(ValueError, match="true_return_horizon"):
+        FlowToBetter(_shift_sampler(0.2), _sum_ax, top_k=8, flow_steps=1, true_return_horizon=10)
 
 
 def test_analysis_metrics_and_plots(tmp_path):

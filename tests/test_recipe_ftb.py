@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
+from tensordict import TensorDict
 
 from torchrl_ftb.testing import load_script
 
@@ -95,9 +96,24 @@ def test_kill_during_diffuser_training_then_resume_end_to_end(tmp_path):
     # diffuser and earlier stages are loaded, not retrained
     diffuser_mtime = ckpt.stat().st_mtime_ns
     redone = recipe.run(_cfg(run_dir, "resume=true", "redo_from=flow", "flow.threshold=1.01",
-                             "diffuser.guidance=2.0"))  # sampling settings belong to the flow stage
+                             "diffuser.guidance=2.0", "flow.true_return_horizon=32"))  # flow-stage settings
     assert ckpt.stat().st_mtime_ns == diffuser_mtime
     assert redone["flow"]["threshold"] == 1.01 and metrics["flow"]["threshold"] != 1.01
+    # the filled true return (stop-rule fill to 32 steps) beside the plain one, and bench/flow_generated.py
+    # recomputes both from the saved flow checkpoint
+    assert redone["flow"]["true_return_mean_before"] == pytest.approx(metrics["flow"]["true_return_mean_before"])
+    assert "true_return_filled_mean_before" in redone["flow"] and "true_return_filled_mean_before" not in metrics["flow"]
+    gen = load_script(ROOT / "bench" / "flow_generated.py", "bench_flow_generated")
+    flow_ckpt = torch.load(run_dir / "checkpoints" / "flow.pt", weights_only=True)
+    td = {k: TensorDict(flow_ckpt[k]["data"], batch_size=flow_ckpt[k]["batch_size"]) for k in ("original", "trajectories")}
+    src = flow_ckpt["source_step"] > 0
+    rows = [{"frame_stack_error_m": None}] * int(src.sum())
+    imp, invalid = gen.oracle_improvement("toy", td["original"], td["trajectories"], src, rows, horizon=32,
+                                          max_frame_stack_error=0.05)
+    assert invalid == 0 and imp["filled_32_frame_stack_checked"] == imp["filled_32"]
+    for ours, recipe_key in (("plain", "true_return"), ("filled_32", "true_return_filled")):
+        for stat in ("mean_before", "mean_after", "max_after"):
+            assert imp[ours][f"true_return_{stat}"] == pytest.approx(redone["flow"][f"{recipe_key}_{stat}"], abs=1e-4)
     assert json.loads((run_dir / "stages.json").read_text())["eval"]["done"]
     with pytest.raises(ValueError, match="different config"):  # earlier stages' settings still locked
         recipe.run(_cfg(run_dir, "resume=true", "redo_from=flow", "diffuser.steps=41"))

@@ -35,15 +35,23 @@ def improvement(
     flowed: TensorDictBase,
     *,
     true_reward_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
+    horizon: int | None = None,
 ) -> dict[str, float]:
     """Mean and max true return of the original top-k and of the flowed set (same reward fn).
+
+    Args:
+        original: the starting top-k ``[k, H]``.
+        flowed: the flowed set ``[k', H]``.
+        true_reward_fn: ``(observation, action) -> reward`` ground truth.
+        horizon: the stop-rule fill of :func:`~torchrl_ftb.flow.flow.masked_true_returns`
+            (``None``: the plain sum).
 
     Returns:
         ``{"true_return_mean_before", "true_return_max_before", "true_return_mean_after",
         "true_return_max_after"}``.
     """
-    before = masked_true_return(original, true_reward_fn)
-    after = masked_true_return(flowed, true_reward_fn)
+    before = masked_true_return(original, true_reward_fn, horizon=horizon)
+    after = masked_true_return(flowed, true_reward_fn, horizon=horizon)
     return {
         "true_return_mean_before": float(before.mean()),
         "true_return_max_before": float(before.max()),

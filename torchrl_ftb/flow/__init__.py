@@ -7,6 +7,7 @@ from torchrl_ftb.flow.flow import (
     default_min_length,
     improves,
     masked_true_return,
+    masked_true_returns,
     normalized_scores,
     trajectory_validity,
 )
@@ -19,6 +20,7 @@ __all__ = [
     "default_min_length",
     "improves",
     "masked_true_return",
+    "masked_true_returns",
     "normalized_scores",
     "trajectory_validity",
 ]

@@ -68,7 +68,7 @@ from torchrl_ftb.preference import (
 
 __all__ = [
     "FlowToBetter", "FlowResult", "adaptive_flow_steps", "clip_actions", "default_min_length", "improves",
-    "masked_true_return", "normalized_scores", "trajectory_validity",
+    "masked_true_return", "masked_true_returns", "normalized_scores", "trajectory_validity",
 ]
 
 TRAJ_KEYS = ("observation", "action", "mask")
@@ -162,12 +162,45 @@ def default_min_length(trajs: TensorDictBase) -> int:
     return max(2, int(trajs.get("mask").sum(-1).min()) // 2)
 
 
-def masked_true_return(trajs: TensorDictBase, true_reward_fn: Callable) -> torch.Tensor:
-    """Undiscounted ``sum_h r(s_h, a_h)`` over the valid steps of each trajectory, ``float64 [N]``.
+def masked_true_returns(
+    trajs: TensorDictBase, true_reward_fn: Callable, *, horizons: tuple[int | None, ...] = (None,)
+) -> torch.Tensor:
+    """True returns of each trajectory under one or more definitions, ``float64 [N, len(horizons)]``.
 
     ``true_reward_fn(observation [L, obs], action [L, act]) -> reward [L] or [L, 1]`` is
     called once per trajectory on its valid prefix only (simulator-based reward functions,
-    e.g. Meta-World's, then never see padding).
+    e.g. Meta-World's, then never see padding), and every definition is read off that one call.
+    A ``None`` horizon is the undiscounted sum over the valid steps; an integer ``horizon`` is
+    the stop-rule fill of :func:`torchrl_ftb.data.labels.true_return`: a trajectory of ``n <
+    horizon`` steps keeps earning its last step's reward up to ``horizon`` steps (on Meta-World a
+    success ends the episode, so a faster success earns more). Generated trajectories carry no
+    termination flag, so the fill is only meaningful on tasks without terminal states.
+
+    Example:
+        >>> from torchrl_ftb.testing import make_toy_dataset, toy_reward
+        >>> data = make_toy_dataset(num_trajectories=3, horizon=5, seed=0)
+        >>> masked_true_returns(data, toy_reward, horizons=(None, 10)).shape
+        torch.Size([3, 2])
+    """
+    if any(h is not None and h < 1 for h in horizons):
+        raise ValueError(f"masked_true_returns: every horizon must be None or >= 1, got {horizons}")
+    lengths = trajs.get("mask").sum(-1).tolist()
+    obs, act = trajs.get("observation"), trajs.get("action")
+    out = torch.zeros(len(lengths), len(horizons), dtype=torch.float64)
+    for i, n in enumerate(lengths):
+        if not n:
+            continue
+        reward = torch.as_tensor(true_reward_fn(obs[i, :n], act[i, :n])).double().reshape(-1)
+        for j, horizon in enumerate(horizons):
+            out[i, j] = reward.sum() + (0 if horizon is None else max(horizon - n, 0) * reward[-1])
+    return out
+
+
+def masked_true_return(trajs: TensorDictBase, true_reward_fn: Callable, *, horizon: int | None = None) -> torch.Tensor:
+    """True return ``sum_h r(s_h, a_h)`` over the valid steps of each trajectory, ``float64 [N]``.
+
+    ``horizon``: the stop-rule fill (see :func:`masked_true_returns`); ``None`` (default) is the
+    paper's plain sum.
 
     Example:
         >>> from torchrl_ftb.testing import make_toy_dataset, toy_reward
@@ -176,13 +209,7 @@ def masked_true_return(trajs: TensorDictBase, true_reward_fn: Callable) -> torch
         >>> bool(torch.allclose(ret.float(), data["next", "reward"].squeeze(-1).sum(-1), atol=1e-5))
         True
     """
-    lengths = trajs.get("mask").sum(-1).tolist()
-    obs, act = trajs.get("observation"), trajs.get("action")
-    out = torch.zeros(len(lengths), dtype=torch.float64)
-    for i, n in enumerate(lengths):
-        if n:
-            out[i] = torch.as_tensor(true_reward_fn(obs[i, :n], act[i, :n])).double().sum()
-    return out
+    return masked_true_returns(trajs, true_reward_fn, horizons=(horizon,))[:, 0]
 
 
 @dataclass
@@ -200,6 +227,8 @@ class FlowResult:
         summary: scalars (flow steps planned/run, s_min/s_max, before/after means, ...).
         original_indices: dataset indices of the starting top-k.
         true_returns, original_true_returns: ``[k]`` true returns (``true_reward_fn`` given) or None.
+        filled_true_returns, original_filled_true_returns: ``[k]`` true returns with the stop-rule
+            fill (``true_return_horizon`` given) or None.
     """
 
     trajectories: TensorDict
@@ -214,6 +243,8 @@ class FlowResult:
     summary: dict[str, float] = field(default_factory=dict)
     true_returns: torch.Tensor | None = None
     original_true_returns: torch.Tensor | None = None
+    filled_true_returns: torch.Tensor | None = None
+    original_filled_true_returns: torch.Tensor | None = None
 
     def __iter__(self) -> Iterator[Any]:
         """``improved, stats = flow(data)``."""
@@ -245,6 +276,10 @@ class FlowToBetter(nn.Module):
         normalizer: object with ``normalize(x)`` for the |z| check; default the sampler's
             ``normalizer`` attribute, else a z-score fitted on the dataset's valid steps.
         true_reward_fn: ``(observation, action) -> reward`` ground truth, for statistics only.
+        true_return_horizon: also report the true return with the stop-rule fill over this many
+            steps (:func:`masked_true_returns`; ``true_return_filled_*`` statistics), e.g. 500 on
+            Meta-World, where a success ends the episode and the plain sum pays a slow success
+            more than a fast one. ``None`` (default): the plain sum only.
         batch_size: trajectories per sampler call (memory bound).
         seed: seeds the sampler noise (global RNG inside a fork).
         ensemble_rule: ``"mean"`` (accept on the ensemble-mean score) or ``"all"`` (every
@@ -275,6 +310,7 @@ class FlowToBetter(nn.Module):
         validity_fn: Callable[[TensorDictBase], torch.Tensor] | None = None,
         normalizer: Any | None = None,
         true_reward_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
+        true_return_horizon: int | None = None,
         batch_size: int = 256,
         seed: int = 0,
         ensemble_rule: str = "mean",
@@ -295,6 +331,9 @@ class FlowToBetter(nn.Module):
             raise ValueError(f"FlowToBetter: need 0 <= min_flow_steps <= max_flow_steps, got {min_flow_steps}, {max_flow_steps}")
         if batch_size < 1:
             raise ValueError(f"FlowToBetter: batch_size must be >= 1, got {batch_size}")
+        if true_return_horizon is not None and (true_reward_fn is None or true_return_horizon < 1):
+            raise ValueError("FlowToBetter: true_return_horizon needs a true_reward_fn and must be >= 1, got "
+                             f"{true_return_horizon}")
         if ensemble_rule not in ("mean", "all"):
             raise ValueError(f"FlowToBetter: ensemble_rule must be 'mean' or 'all', got {ensemble_rule!r}")
         if ensemble_rule == "all" and getattr(score_model, "num_members", 1) < 2:
@@ -315,6 +354,7 @@ class FlowToBetter(nn.Module):
         self.validity_fn = validity_fn
         self.normalizer = normalizer
         self.true_reward_fn = true_reward_fn
+        self.true_return_horizon = true_return_horizon
         self.batch_size = int(batch_size)
         self.seed = int(seed)
         self.ensemble_rule = ensemble_rule
@@ -395,8 +435,17 @@ class FlowToBetter(nn.Module):
             steps = min(steps, self.max_flow_steps)
         return steps, adaptive
 
+    @property
+    def _true_names(self) -> tuple[str, ...]:
+        # column names of _true_return: the plain sum, and the stop-rule fill when asked for
+        return ("true_return",) + (() if self.true_return_horizon is None else ("true_return_filled",))
+
     def _true_return(self, trajs: TensorDictBase) -> torch.Tensor | None:
-        return None if self.true_reward_fn is None else masked_true_return(trajs, self.true_reward_fn)
+        """``[N, D]`` true returns, one column per name in ``_true_names`` (one oracle pass)."""
+        if self.true_reward_fn is None:
+            return None
+        horizons = (None,) + (() if self.true_return_horizon is None else (self.true_return_horizon,))
+        return masked_true_returns(trajs, self.true_reward_fn, horizons=horizons)
 
     # -- main -----------------------------------------------------------------------------
     def forward(
@@ -482,7 +531,7 @@ class FlowToBetter(nn.Module):
                     cur_members[:, accept] = new_members[:, accept]
                     if cur_true is not None:  # only the replaced trajectories need the (costly) oracle
                         new_true = self._true_return(accepted)
-                        true_gain = new_true - cur_true[accept]
+                        true_gain = new_true[:, 0] - cur_true[accept][:, 0]
                         cur_true[accept] = new_true
                         pool_true.append(new_true)
                     pool.append(accepted)
@@ -502,7 +551,9 @@ class FlowToBetter(nn.Module):
                 if domain_valid is not None:
                     row["domain_valid_rate"] = float(domain_valid.double().mean())
                 if cur_true is not None:
-                    row.update(true_return_mean=float(cur_true.mean()), true_return_max=float(cur_true.max()))
+                    for j, name in enumerate(self._true_names):
+                        row.update({f"{name}_mean": float(cur_true[:, j].mean()),
+                                    f"{name}_max": float(cur_true[:, j].max())})
                     if true_gain is not None:  # did the accepted samples beat what they replaced?
                         row.update(accepted_true_gain_mean=float(true_gain.mean()),
                                    accepted_true_gain_positive=float((true_gain > 0).double().mean()))
@@ -546,10 +597,14 @@ class FlowToBetter(nn.Module):
         true1 = None
         if true0 is not None:
             true1 = torch.cat([true0, *pool_true])[keep]
-            summary.update(
-                true_return_mean_before=float(true0.mean()), true_return_max_before=float(true0.max()),
-                true_return_mean_after=float(true1.mean()), true_return_max_after=float(true1.max()),
-            )
+            for j, name in enumerate(self._true_names):
+                summary.update({
+                    f"{name}_mean_before": float(true0[:, j].mean()), f"{name}_max_before": float(true0[:, j].max()),
+                    f"{name}_mean_after": float(true1[:, j].mean()), f"{name}_max_after": float(true1[:, j].max()),
+                })
+            if self.true_return_horizon is not None:
+                summary["true_return_horizon"] = float(self.true_return_horizon)
+        filled = self.true_return_horizon is not None and true0 is not None
         return FlowResult(
             trajectories=final,
             scores=final_scores,
@@ -561,8 +616,10 @@ class FlowToBetter(nn.Module):
             generated_step=generated_step,
             stats=stats,
             summary=summary,
-            true_returns=true1,
-            original_true_returns=true0,
+            true_returns=None if true1 is None else true1[:, 0],
+            original_true_returns=None if true0 is None else true0[:, 0],
+            filled_true_returns=true1[:, 1] if filled else None,
+            original_filled_true_returns=true0[:, 1] if filled else None,
         )
 
     @staticmethod
