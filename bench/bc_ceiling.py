@@ -37,11 +37,11 @@ from omegaconf import OmegaConf
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from torchrl_ftb.data import observation_statistics, trajectories_to_flat  # noqa: E402
+from torchrl_ftb.data import trajectories_to_flat  # noqa: E402
 from torchrl_ftb.data.labels import SuccessTeacher  # noqa: E402
 from torchrl_ftb.datasets import dataset_kwargs, make_dataset  # noqa: E402
 from torchrl_ftb.envs import make_env  # noqa: E402
-from torchrl_ftb.policy import evaluate_policy, make_bc_actor, make_transition_buffer, train_bc  # noqa: E402
+from torchrl_ftb.policy import evaluate_policy, make_bc_actor_for, make_transition_buffer, train_bc  # noqa: E402
 from torchrl_ftb.provenance import run_record, write_json  # noqa: E402
 
 SUBSETS = {
@@ -78,11 +78,9 @@ def run_cell(task: str, idx: torch.Tensor, seed: int, cfg, data: tuple, *, episo
     chosen = trajs[idx]
     flat = trajectories_to_flat(chosen.select("observation", "action", "mask"))
     # the actor's observation z-score: from the BC set itself (the recipe's) or from the whole dataset
-    source = flat if obs_stats == "subset" else trajectories_to_flat(trajs.select("observation", "action", "mask"))
-    loc, scale = observation_statistics(source.get("observation"))
+    source = None if obs_stats == "subset" else trajectories_to_flat(trajs.select("observation", "action", "mask"))
     torch.manual_seed(seed)
-    obs_dim, act_dim = trajs.get("observation").shape[-1], trajs.get("action").shape[-1]
-    actor = make_bc_actor(obs_dim, act_dim, hidden=tuple(cfg.bc.hidden), obs_loc=loc, obs_scale=scale)
+    actor = make_bc_actor_for(flat, hidden=tuple(cfg.bc.hidden), statistics_from=source)
     b = cfg.bc
     t0 = time.perf_counter()
     out = train_bc(actor, make_transition_buffer(flat, batch_size=int(b.batch_size), seed=seed), steps=steps,

@@ -59,9 +59,8 @@ from torchrl_ftb.flow import FlowToBetter
 from torchrl_ftb.policy import (
     evaluate_policy,
     load_bc_checkpoint,
-    make_bc_actor,
+    make_bc_actor_for,
     make_transition_buffer,
-    observation_statistics,
     train_bc,
 )
 from torchrl_ftb.preference import (
@@ -353,12 +352,11 @@ def stage_flow(cfg, run: RunDir, trajs, scores, block_ids, sampler, model, true_
         "trajectories": res.trajectories, "original": res.original, "generated": res.generated}
 
 
-def stage_bc(cfg, run: RunDir, improved, obs_dim, act_dim, device, logger):
+def stage_bc(cfg, run: RunDir, improved, device, logger):
     b = cfg.bc
     flat = trajectories_to_flat(improved.select("observation", "action", "mask"))
-    loc, scale = observation_statistics(flat.get("observation"))
     torch.manual_seed(int(cfg.seed))
-    actor = make_bc_actor(obs_dim, act_dim, hidden=tuple(b.hidden), obs_loc=loc, obs_scale=scale, device=device)
+    actor = make_bc_actor_for(flat, hidden=tuple(b.hidden), device=device)
     path = run.ckpt / "bc.pt"
     if run.done("bc"):
         load_bc_checkpoint(path, actor)
@@ -576,7 +574,7 @@ def run(cfg: DictConfig) -> dict:
 
     # 7. BC -----------------------------------------------------------------------------
     t0 = time.perf_counter()
-    actor, bc_summary = stage_bc(cfg, run_dir, flow["trajectories"], obs_dim, act_dim, device, logger)
+    actor, bc_summary = stage_bc(cfg, run_dir, flow["trajectories"], device, logger)
     timed("bc", t0)
     partial_metrics["bc"] = bc_summary
     if (out := stopped("bc")) is not None:

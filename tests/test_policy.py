@@ -11,6 +11,7 @@ from torchrl_ftb.policy import (
     evaluate_policy,
     load_bc_checkpoint,
     make_bc_actor,
+    make_bc_actor_for,
     observation_statistics,
     train_bc,
 )
@@ -53,6 +54,21 @@ def test_actor_is_bounded_and_stores_normalizer():
         make_bc_actor(3, 2, obs_loc=torch.zeros(4))
     with pytest.raises(ValueError, match="squash"):
         make_bc_actor(3, 2, squash="relu")
+
+
+def test_actor_for_a_transition_set_takes_its_size_and_z_score():
+    data = TensorDict({"observation": 3 + 2 * torch.randn(64, 5), "action": torch.zeros(64, 2)}, [64])
+    other = TensorDict({"observation": torch.randn(16, 5)}, [16])
+    actor = make_bc_actor_for(data, hidden=(8,))
+    loc, scale = observation_statistics(data["observation"])
+    assert torch.equal(actor.module.normalizer.loc, loc) and torch.equal(actor.module.normalizer.scale, scale)
+    assert actor(data.select("observation"))["action"].shape == (64, 2)
+    # the z-score of another set (e.g. the whole dataset) when asked
+    assert torch.equal(make_bc_actor_for(data, statistics_from=other).module.normalizer.loc, other["observation"].mean(0))
+    with pytest.raises(ValueError, match="flat"):
+        make_bc_actor_for(data.reshape(8, 8))
+    with pytest.raises(ValueError, match="no 'action'"):
+        make_bc_actor_for(other)
 
 
 class _GoalReacher(torch.nn.Module):

@@ -53,7 +53,7 @@ from torchrl_ftb.baselines.networks import make_iql_model, make_td3bc_model
 from torchrl_ftb.baselines.offline_rl import train_iql, train_td3bc
 from torchrl_ftb.data import trajectories_to_flat, validate_trajectories
 from torchrl_ftb.data.labels import ReturnTeacher
-from torchrl_ftb.policy import make_bc_actor, observation_statistics, train_bc
+from torchrl_ftb.policy import make_bc_actor_for, observation_statistics, train_bc
 
 __all__ = ["METHODS", "LABEL_METHODS", "TRUE_REWARD_METHODS", "BaselineResult", "run_baseline",
            "train_reward_model"]
@@ -219,10 +219,8 @@ def run_baseline(
             info["selected_true_return_mean"] = float(teacher.returns(selected).mean())
             info["dataset_true_return_mean"] = float(teacher.returns(trajs).mean())
         flat = trajectories_to_flat(selected).select("observation", "action")
-        loc, scale = observation_statistics(flat.get("observation"))
         bc_opts = dict(bc or {})
-        bc_hidden = list(bc_opts.pop("hidden", hidden))
-        actor = make_bc_actor(obs_dim, act_dim, hidden=bc_hidden, obs_loc=loc, obs_scale=scale, device=device)
+        actor = make_bc_actor_for(flat, hidden=list(bc_opts.pop("hidden", hidden)), device=device)
         info["train"] = train_bc(actor, flat, **bc_opts, seed=seed, logger=logger, progress=progress, device=device)
         actor.eval()
         return BaselineResult(method, actor, info, score_model)

@@ -18,6 +18,8 @@ from __future__ import annotations
 
 from typing import Literal, Sequence
 
+from tensordict import TensorDictBase
+
 import torch
 from torch import nn
 from torchrl.data import Bounded
@@ -25,7 +27,7 @@ from torchrl.modules import MLP, Actor
 
 from torchrl_ftb.data.trajectories import observation_statistics  # re-exported (one home: data)
 
-__all__ = ["ObservationNormalizer", "SquashedMLP", "make_bc_actor", "observation_statistics"]
+__all__ = ["ObservationNormalizer", "SquashedMLP", "make_bc_actor", "make_bc_actor_for", "observation_statistics"]
 
 
 class ObservationNormalizer(nn.Module):
@@ -112,3 +114,40 @@ def make_bc_actor(
     spec = Bounded(-torch.ones(action_dim), torch.ones(action_dim), shape=(action_dim,))
     actor = Actor(module, in_keys=["observation"], out_keys=["action"], spec=spec)
     return actor.to(device) if device is not None else actor
+
+
+def make_bc_actor_for(
+    transitions: TensorDictBase,
+    *,
+    hidden: Sequence[int] = (256, 256),
+    statistics_from: TensorDictBase | None = None,
+    squash: Literal["tanh", "clip"] = "tanh",
+    device: torch.device | str | None = None,
+) -> Actor:
+    """A :func:`make_bc_actor` sized for a flat transition set ``[T]`` and z-scoring its observations.
+
+    Args:
+        transitions: flat ``[T]`` TensorDict with ``observation`` and ``action`` (what BC trains on).
+        hidden: hidden layer widths (ReLU).
+        statistics_from: flat ``[T']`` TensorDict whose observations give the z-score instead
+            (default: ``transitions``' own, as FTB and the BC baselines do).
+        squash: ``"tanh"`` (default) or ``"clip"``.
+        device: where the parameters live.
+
+    Example:
+        >>> from tensordict import TensorDict
+        >>> data = TensorDict({"observation": torch.randn(10, 3), "action": torch.zeros(10, 2)}, [10])
+        >>> actor = make_bc_actor_for(data, hidden=(8,))
+        >>> bool(torch.allclose(actor.module.normalizer.loc, data["observation"].mean(0)))
+        True
+    """
+    for name, td in (("transitions", transitions), ("statistics_from", statistics_from)):
+        if td is not None and ("observation" not in td.keys() or td.ndim != 1):
+            raise ValueError(f"make_bc_actor_for: {name} must be a flat [T] TensorDict with 'observation', "
+                             f"got batch size {list(td.batch_size)} and keys {sorted(map(str, td.keys()))}")
+    if "action" not in transitions.keys():
+        raise ValueError("make_bc_actor_for: transitions have no 'action'")
+    source = transitions if statistics_from is None else statistics_from
+    loc, scale = observation_statistics(source.get("observation"))
+    return make_bc_actor(transitions.get("observation").shape[-1], transitions.get("action").shape[-1], hidden=hidden,
+                         obs_loc=loc, obs_scale=scale, squash=squash, device=device)
