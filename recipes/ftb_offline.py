@@ -458,10 +458,11 @@ def run(cfg: DictConfig) -> dict:
     if cfg.flow.get("max_frame_stack_error") is not None and kind != "metaworld":
         raise ValueError(f"flow.max_frame_stack_error is a Meta-World check (stacked previous frame); "
                          f"env.name={cfg.env.name!r} is {kind}: leave it null")
-    if cfg.score_model.get("horizon") is not None and kind == "locomotion":
-        raise ValueError(f"score_model.horizon is the stop-rule fill for tasks without terminal states "
-                         f"(Meta-World); env.name={cfg.env.name!r} episodes terminate (falls) and the diffuser's "
-                         f"samples carry no termination flag: leave it null")
+    for key in ("score_model.horizon", "flow.true_return_horizon"):
+        if OmegaConf.select(cfg, key) is not None and kind == "locomotion":
+            raise ValueError(f"{key} is the stop-rule fill for tasks without terminal states (Meta-World); "
+                             f"env.name={cfg.env.name!r} episodes terminate (falls) and the diffuser's samples carry "
+                             f"no termination flag: leave it null")
     stop_after = cfg.get("stop_after")
     if stop_after is not None and stop_after not in STAGES:
         raise ValueError(f"stop_after={stop_after!r}: not a stage; choose one of {list(STAGES)}")

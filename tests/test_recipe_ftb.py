@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
 from tensordict import TensorDict
 
 from torchrl_ftb.testing import load_script
@@ -160,6 +161,8 @@ def test_bad_config_is_a_clear_error(tmp_path):
     assert not (tmp_path / "f").exists()  # refused before anything is written
     with pytest.raises(ValueError, match="score_model.horizon is the stop-rule fill"):
         recipe.run(_cfg(tmp_path / "h", "env.name=hopper", "score_model.horizon=1000"))
+    with pytest.raises(ValueError, match="flow.true_return_horizon is the stop-rule fill"):
+        recipe.run(_cfg(tmp_path / "h2", "env.name=hopper", "flow.true_return_horizon=1000"))
     assert not (tmp_path / "h").exists()
     with pytest.raises(ValueError, match=r"labels.query.strategy='margin': choose one of \['random'"):
         recipe.run(_cfg(tmp_path / "g", "labels.query.strategy=margin"))
@@ -216,3 +219,17 @@ def test_stop_after_a_stage_then_resume_to_the_end(tmp_path):
     assert (run_dir / "checkpoints" / "score_model.pt").stat().st_mtime_ns == score_mtime  # loaded, not retrained
     assert metrics["eval"]["num_episodes"] == 2 and metrics["score_quality"] == partial["score_quality"]
     assert (run_dir / "metrics.json").is_file() and not (run_dir / "metrics_partial.json").exists()
+
+
+def test_metaworld_config_is_the_paper_defaults_plus_the_fill_and_a_larger_top_k():
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+        paper = compose(config_name="ftb_offline")
+        ours = compose(config_name="ftb_offline_metaworld", overrides=["env.name=plate-slide-v3"])
+    assert ours.score_model.horizon == ours.flow.true_return_horizon == ours.env.max_episode_steps == 500
+    assert ours.flow.top_k == 200 and paper.flow.top_k == 100 and paper.score_model.horizon is None
+    # nothing else differs from the paper's defaults
+    a, b = OmegaConf.to_container(paper, resolve=False), OmegaConf.to_container(ours, resolve=False)
+    a["env"]["name"] = b["env"]["name"]
+    for section, key in (("score_model", "horizon"), ("flow", "top_k"), ("flow", "true_return_horizon")):
+        a[section].pop(key), b[section].pop(key)
+    assert a == b
