@@ -176,9 +176,12 @@ def import_run(run_dir: Path, *, results_dir: Path, overwrite: bool = False) -> 
 
 
 def run_cell(method: str, task: str, seed: int, *, teacher: str, preset: str, extra: list[str],
-             runs_dir: Path, results_dir: Path, threads: int = 1,
+             runs_dir: Path, results_dir: Path, threads: int = 1, ftb_config: str | None = None,
              python: str = sys.executable) -> dict[str, Any] | None:
-    """Run one cell (skipped if its JSON exists); returns the record, or ``None`` on failure."""
+    """Run one cell (skipped if its JSON exists); returns the record, or ``None`` on failure.
+
+    ``ftb_config``: the FTB recipe's hydra config name (``--config-name``; default ``ftb_offline``).
+    """
     out = cell_path(results_dir, method, task, teacher, seed)
     if out.exists():
         print(f"[table1] skip {out.name} (done)")
@@ -188,7 +191,8 @@ def run_cell(method: str, task: str, seed: int, *, teacher: str, preset: str, ex
     common = [*task_overrides(task), f"seed={seed}", f"labels.teacher={teacher}", f"preset={preset}",
               f"run_dir={run_dir}", "resume=true", "progress=false"]
     if method == "ftb":
-        cmd = [python, str(ROOT / "recipes" / "ftb_offline.py"), *common, *extra]
+        config = ["--config-name", ftb_config] if ftb_config else []
+        cmd = [python, str(ROOT / "recipes" / "ftb_offline.py"), *config, *common, *extra]
     else:
         cmd = [python, str(ROOT / "recipes" / "baselines.py"), f"method={method}", *common, *extra]
     print(f"[table1] run {out.name}: {shlex.join(cmd)}", flush=True)
@@ -417,6 +421,8 @@ def main(argv: Iterable[str] | None = None) -> int:
     parser.add_argument("--preset", default="cpu", help="recipe preset: cpu | paper")
     parser.add_argument("--threads", type=int, default=1, help="OMP_NUM_THREADS (torch threads) per cell")
     parser.add_argument("--extra", nargs="*", default=[], help="extra hydra overrides for every cell")
+    parser.add_argument("--ftb-config", default=None,
+                        help="hydra config of the ftb cells, e.g. ftb_offline_metaworld (default: ftb_offline)")
     parser.add_argument("--results-dir", type=Path, default=RESULTS_DIR)
     parser.add_argument("--runs-dir", type=Path, default=ROOT / "outputs" / "table1")
     parser.add_argument("--write-md", action="store_true", help="only (re)write the BENCHMARKS.md section")
@@ -461,7 +467,7 @@ def main(argv: Iterable[str] | None = None) -> int:
                     print(f"{'done' if path.exists() else 'todo'}  {path.name}")
                     continue
                 if run_cell(method, task, seed, teacher=args.teacher, preset=args.preset, extra=args.extra,
-                            threads=args.threads,
+                            threads=args.threads, ftb_config=args.ftb_config,
                             runs_dir=args.runs_dir, results_dir=args.results_dir) is None:
                     failures += 1
     if failures:

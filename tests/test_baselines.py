@@ -187,6 +187,20 @@ def test_recipe_runs_resumes_and_checkpoint_loads(tmp_path):
         recipe.run(bad)
 
 
+def test_table1_cell_command_names_the_ftb_config(tmp_path):
+    table1 = load_script(ROOT / "bench" / "table1.py", "bench_table1")
+    fake = tmp_path / "python"  # stands in for the interpreter: prints the command it got, fails
+    fake.write_text("#!/bin/sh\necho \"$@\"\nexit 3\n")
+    fake.chmod(0o755)
+    out = table1.run_cell("ftb", "plate-slide-v3", 4, teacher="success", preset="cpu", extra=["eval.num_episodes=50"],
+                          runs_dir=tmp_path / "runs", results_dir=tmp_path / "res", ftb_config="ftb_offline_metaworld",
+                          python=str(fake))
+    assert out is None  # a failed cell writes no JSON and keeps its log
+    log = (tmp_path / "runs" / "failed" / "ftb__plate-slide-v3__success__seed4.log").read_text()
+    assert "ftb_offline.py --config-name ftb_offline_metaworld env.name=plate-slide-v3 seed=4" in log
+    assert log.splitlines()[0].endswith("progress=false eval.num_episodes=50") and not (tmp_path / "res").exists()
+
+
 def test_table1_markdown_between_markers(tmp_path):
     table1 = load_script(ROOT / "bench" / "table1.py", "bench_table1")
     cells = tmp_path / "cells"
