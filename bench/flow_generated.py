@@ -69,7 +69,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "flow_generated.json")
     parser.add_argument("--horizon", type=int, default=None,
                         help="also report the oracle improvement, plain and with the stop-rule fill to this many steps")
-    parser.add_argument("--max-frame-stack-error", type=float, default=0.05,
+    parser.add_argument("--max-frame-stack-error", type=float, default=0.02,
                         help="metres: generated trajectories above it count as physically invalid (data: 0)")
     args = parser.parse_args()
     record = {**run_record(config={"run_dirs": [str(r) for r in args.run_dirs], "horizon": args.horizon,

@@ -110,7 +110,7 @@ def test_kill_during_diffuser_training_then_resume_end_to_end(tmp_path):
     src = flow_ckpt["source_step"] > 0
     rows = [{"frame_stack_error_m": None}] * int(src.sum())
     imp, invalid = gen.oracle_improvement("toy", td["original"], td["trajectories"], src, rows, horizon=32,
-                                          max_frame_stack_error=0.05)
+                                          max_frame_stack_error=0.02)
     assert invalid == 0 and imp["filled_32_frame_stack_checked"] == imp["filled_32"]
     for ours, recipe_key in (("plain", "true_return"), ("filled_32", "true_return_filled")):
         for stat in ("mean_before", "mean_after", "max_after"):
