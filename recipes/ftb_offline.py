@@ -608,11 +608,11 @@ def run(cfg: DictConfig) -> dict:
         ret0, ret1 = flow["original_true_returns"], flow["true_returns"]
         plot_histograms({"original top-k": ret0, "after flow": ret1}, plots / "true_return_before_after.png",
                         xlabel="true return")
+        analysis["improvement"] = {k: v for k, v in summary.items() if k.startswith("true_return_")}
     if flow.get("filled_true_returns") is not None:
         plot_histograms({"original top-k": flow["original_filled_true_returns"], "after flow": flow["filled_true_returns"]},
                         plots / "true_return_filled_before_after.png",
                         xlabel=f"true return, stop-rule fill to {int(summary['true_return_horizon'])} steps")
-        analysis["improvement"] = {k: v for k, v in summary.items() if k.startswith("true_return_")}
     if flow["generated"].batch_size[0]:
         nov = novelty(flow["generated"], trajs.select("observation", "action", "mask"), seed=int(cfg.seed))
         analysis["novelty"] = {"generated_mean": nov["generated_mean"], "perturbed_mean": nov["perturbed_mean"]}

@@ -104,6 +104,9 @@ def test_kill_during_diffuser_training_then_resume_end_to_end(tmp_path):
     # recomputes both from the saved flow checkpoint
     assert redone["flow"]["true_return_mean_before"] == pytest.approx(metrics["flow"]["true_return_mean_before"])
     assert "true_return_filled_mean_before" in redone["flow"] and "true_return_filled_mean_before" not in metrics["flow"]
+    assert metrics["analysis"]["improvement"]["true_return_mean_after"] == metrics["flow"]["true_return_mean_after"]
+    assert redone["analysis"]["improvement"]["true_return_filled_mean_after"] == redone["flow"]["true_return_filled_mean_after"]
+    assert (run_dir / "plots" / "true_return_filled_before_after.png").is_file()
     gen = load_script(ROOT / "bench" / "flow_generated.py", "bench_flow_generated")
     flow_ckpt = torch.load(run_dir / "checkpoints" / "flow.pt", weights_only=True)
     td = {k: TensorDict(flow_ckpt[k]["data"], batch_size=flow_ckpt[k]["batch_size"]) for k in ("original", "trajectories")}
