@@ -34,7 +34,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from torchrl_ftb.envs import metaworld_frame_stack_error, true_reward_fn  # noqa: E402
-from torchrl_ftb.flow import masked_true_returns  # noqa: E402
+from torchrl_ftb.flow import masked_true_returns, return_summary  # noqa: E402
 from torchrl_ftb.provenance import run_record, write_json  # noqa: E402
 
 
@@ -56,10 +56,7 @@ def oracle_improvement(task: str, original: TensorDict, final: TensorDict, gener
     out = {}
     for j, name in enumerate(("plain", f"filled_{horizon}")):
         for suffix, final_ret in (("", after), ("_frame_stack_checked", checked)):
-            out[name + suffix] = {
-                "true_return_mean_before": float(before[:, j].mean()), "true_return_max_before": float(before[:, j].max()),
-                "true_return_mean_after": float(final_ret[:, j].mean()), "true_return_max_after": float(final_ret[:, j].max()),
-            }
+            out[name + suffix] = return_summary(before[:, j], final_ret[:, j])
     return out, int(bad.sum())
 
 

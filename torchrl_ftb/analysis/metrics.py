@@ -25,7 +25,7 @@ from typing import Callable
 import torch
 from tensordict import TensorDictBase
 
-from torchrl_ftb.flow.flow import masked_true_return
+from torchrl_ftb.flow.flow import masked_true_return, return_summary
 
 __all__ = ["improvement", "dynamics_error", "toy_oracle_step", "novelty", "trajectory_distances"]
 
@@ -50,14 +50,8 @@ def improvement(
         ``{"true_return_mean_before", "true_return_max_before", "true_return_mean_after",
         "true_return_max_after"}``.
     """
-    before = masked_true_return(original, true_reward_fn, horizon=horizon)
-    after = masked_true_return(flowed, true_reward_fn, horizon=horizon)
-    return {
-        "true_return_mean_before": float(before.mean()),
-        "true_return_max_before": float(before.max()),
-        "true_return_mean_after": float(after.mean()),
-        "true_return_max_after": float(after.max()),
-    }
+    return return_summary(masked_true_return(original, true_reward_fn, horizon=horizon),
+                          masked_true_return(flowed, true_reward_fn, horizon=horizon))
 
 
 def toy_oracle_step(observation: torch.Tensor, action: torch.Tensor, *, horizon: int) -> torch.Tensor:

@@ -9,6 +9,7 @@ from torchrl_ftb.flow.flow import (
     masked_true_return,
     masked_true_returns,
     normalized_scores,
+    return_summary,
     trajectory_validity,
 )
 
@@ -22,5 +23,6 @@ __all__ = [
     "masked_true_return",
     "masked_true_returns",
     "normalized_scores",
+    "return_summary",
     "trajectory_validity",
 ]

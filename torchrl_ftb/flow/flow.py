@@ -68,7 +68,7 @@ from torchrl_ftb.preference import (
 
 __all__ = [
     "FlowToBetter", "FlowResult", "adaptive_flow_steps", "clip_actions", "default_min_length", "improves",
-    "masked_true_return", "masked_true_returns", "normalized_scores", "trajectory_validity",
+    "masked_true_return", "masked_true_returns", "normalized_scores", "return_summary", "trajectory_validity",
 ]
 
 TRAJ_KEYS = ("observation", "action", "mask")
@@ -210,6 +210,17 @@ def masked_true_return(trajs: TensorDictBase, true_reward_fn: Callable, *, horiz
         True
     """
     return masked_true_returns(trajs, true_reward_fn, horizons=(horizon,))[:, 0]
+
+
+def return_summary(before: torch.Tensor, after: torch.Tensor, *, prefix: str = "true_return") -> dict[str, float]:
+    """``{prefix}_{mean,max}_{before,after}`` of two sets of returns or scores (the improvement statistics).
+
+    Example:
+        >>> return_summary(torch.tensor([1.0, 3.0]), torch.tensor([2.0, 4.0]))["true_return_mean_after"]
+        3.0
+    """
+    return {f"{prefix}_mean_before": float(before.mean()), f"{prefix}_max_before": float(before.max()),
+            f"{prefix}_mean_after": float(after.mean()), f"{prefix}_max_after": float(after.max())}
 
 
 @dataclass
@@ -355,6 +366,9 @@ class FlowToBetter(nn.Module):
         self.normalizer = normalizer
         self.true_reward_fn = true_reward_fn
         self.true_return_horizon = true_return_horizon
+        # (statistics name, horizon) of each true-return column: the plain sum, and the fill when asked for
+        self._true_columns = (("true_return", None),) + (
+            () if true_return_horizon is None else (("true_return_filled", int(true_return_horizon)),))
         self.batch_size = int(batch_size)
         self.seed = int(seed)
         self.ensemble_rule = ensemble_rule
@@ -435,17 +449,11 @@ class FlowToBetter(nn.Module):
             steps = min(steps, self.max_flow_steps)
         return steps, adaptive
 
-    @property
-    def _true_names(self) -> tuple[str, ...]:
-        # column names of _true_return: the plain sum, and the stop-rule fill when asked for
-        return ("true_return",) + (() if self.true_return_horizon is None else ("true_return_filled",))
-
     def _true_return(self, trajs: TensorDictBase) -> torch.Tensor | None:
-        """``[N, D]`` true returns, one column per name in ``_true_names`` (one oracle pass)."""
+        """``[N, D]`` true returns, one column per entry of ``_true_columns`` (one oracle pass)."""
         if self.true_reward_fn is None:
             return None
-        horizons = (None,) + (() if self.true_return_horizon is None else (self.true_return_horizon,))
-        return masked_true_returns(trajs, self.true_reward_fn, horizons=horizons)
+        return masked_true_returns(trajs, self.true_reward_fn, horizons=tuple(h for _, h in self._true_columns))
 
     # -- main -----------------------------------------------------------------------------
     def forward(
@@ -551,7 +559,7 @@ class FlowToBetter(nn.Module):
                 if domain_valid is not None:
                     row["domain_valid_rate"] = float(domain_valid.double().mean())
                 if cur_true is not None:
-                    for j, name in enumerate(self._true_names):
+                    for j, (name, _) in enumerate(self._true_columns):
                         row.update({f"{name}_mean": float(cur_true[:, j].mean()),
                                     f"{name}_max": float(cur_true[:, j].max())})
                     if true_gain is not None:  # did the accepted samples beat what they replaced?
@@ -587,21 +595,15 @@ class FlowToBetter(nn.Module):
             "min_length": float(min_length),
             "num_generated_accepted": float(generated.batch_size[0]),
             "fraction_generated_in_final": float((all_steps[keep] > 0).double().mean()),
-            "score_mean_before": float(scores[top_idx].mean()),
-            "score_mean_after": float(final_scores.mean()),
-            "score_max_before": float(scores[top_idx].max()),
-            "score_max_after": float(final_scores.max()),
+            **return_summary(scores[top_idx], final_scores, prefix="score"),
         }
         if adaptive is not None:
             summary["flow_steps_adaptive"] = float(adaptive)
         true1 = None
         if true0 is not None:
             true1 = torch.cat([true0, *pool_true])[keep]
-            for j, name in enumerate(self._true_names):
-                summary.update({
-                    f"{name}_mean_before": float(true0[:, j].mean()), f"{name}_max_before": float(true0[:, j].max()),
-                    f"{name}_mean_after": float(true1[:, j].mean()), f"{name}_max_after": float(true1[:, j].max()),
-                })
+            for j, (name, _) in enumerate(self._true_columns):
+                summary.update(return_summary(true0[:, j], true1[:, j], prefix=name))
             if self.true_return_horizon is not None:
                 summary["true_return_horizon"] = float(self.true_return_horizon)
         filled = self.true_return_horizon is not None and true0 is not None

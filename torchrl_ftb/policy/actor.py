@@ -18,9 +18,8 @@ from __future__ import annotations
 
 from typing import Literal, Sequence
 
-from tensordict import TensorDictBase
-
 import torch
+from tensordict import TensorDictBase
 from torch import nn
 from torchrl.data import Bounded
 from torchrl.modules import MLP, Actor
