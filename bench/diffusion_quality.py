@@ -45,38 +45,19 @@ from tensordict import TensorDict
 from torchrl_ftb.datasets.metaworld import make_metaworld_dataset
 from torchrl_ftb.diffusion import (DiffusionSampler, get_preset, load_diffuser, make_diffuser, save_diffuser,
                                    train_diffuser)
-from torchrl_ftb.envs.metaworld import metaworld_frame_stack_error, metaworld_true_reward
+from torchrl_ftb.envs.metaworld import (fit_metaworld_hand_model, metaworld_frame_stack_error,
+                                        metaworld_hand_model_error, metaworld_true_reward)
 from torchrl_ftb.preference import make_block_pair_buffer, make_blocks
 from torchrl_ftb.provenance import run_record, write_json
 
 
-def _transitions(obs: torch.Tensor, act: torch.Tensor, mask: torch.Tensor):
-    """(obs[t], a[t], obs[t+1]) over pairs of consecutive valid steps."""
-    pair = mask[:, 1:] & mask[:, :-1]
-    return obs[:, :-1][pair], act[:, :-1][pair], obs[:, 1:][pair]
-
-
-def _features(o: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
-    return torch.cat([o, a, torch.ones(len(o), 1)], -1).double()
-
-
-def fit_hand_dynamics(obs, act, mask, ridge: float = 1e-6) -> torch.Tensor:
-    """Ridge regression ``obs[t+1,0:3] - obs[t,0:3] ~ [obs[t], a[t], 1]`` on real transitions."""
-    o, a, o1 = _transitions(obs, act, mask)
-    x, y = _features(o, a), (o1[:, :3] - o[:, :3]).double()
-    return torch.linalg.solve(x.T @ x + ridge * torch.eye(x.shape[1], dtype=x.dtype), x.T @ y)
-
-
 def dynamics_proxies(obs, act, mask, hand_w: torch.Tensor) -> dict:
     """Consistency proxies of trajectories ``[N, H]`` (mm; see the module docstring)."""
-    o, a, o1 = _transitions(obs.float(), act.float(), mask.bool())
-    if len(o) == 0:
-        return {"framestack_err_mm": float("nan"), "hand_dyn_err_mm": float("nan"), "num_transitions": 0}
-    stack = metaworld_frame_stack_error(TensorDict({"observation": obs, "mask": mask.bool()}, obs.shape[:2]),
-                                        pooled=True)
-    hand = ((o1[:, :3] - o[:, :3]).double() - _features(o, a) @ hand_w).norm(dim=-1)
-    return {"framestack_err_mm": 1000 * float(stack), "hand_dyn_err_mm": 1000 * float(hand.mean()),
-            "num_transitions": int(len(o))}
+    td = TensorDict({"observation": obs.float(), "action": act.float(), "mask": mask.bool()}, obs.shape[:2])
+    pairs = int((td["mask"][:, 1:] & td["mask"][:, :-1]).sum())
+    return {"framestack_err_mm": 1000 * float(metaworld_frame_stack_error(td, pooled=True)),
+            "hand_dyn_err_mm": 1000 * float(metaworld_hand_model_error(td, hand_w, pooled=True)),
+            "num_transitions": pairs}
 
 
 @torch.no_grad()
@@ -171,7 +152,7 @@ def main() -> None:
     perm = torch.randperm(data.batch_size[0], generator=g)
     n_fit = int(0.8 * len(perm))
     fit_idx, held_idx = perm[:n_fit], perm[n_fit:]
-    hand_w = fit_hand_dynamics(data["observation"][fit_idx], data["action"][fit_idx], mask[fit_idx])
+    hand_w = fit_metaworld_hand_model(data[fit_idx])
     reference = {"real_heldout": dynamics_proxies(data["observation"][held_idx], data["action"][held_idx],
                                                   mask[held_idx], hand_w)}
 

@@ -33,12 +33,12 @@ import shutil
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import hydra
 import torch
 from omegaconf import DictConfig, OmegaConf
-from tensordict import TensorDict
+from tensordict import TensorDict, TensorDictBase
 
 from torchrl_ftb.analysis import novelty, plot_flow_curves, plot_histograms
 from torchrl_ftb.data import atomic_torch_save, atomic_write_text, read_checkpoint, trajectories_to_flat
@@ -49,8 +49,10 @@ from torchrl_ftb.diffusion.train import CHECKPOINT_NAME
 from torchrl_ftb.envs import (
     check_env_matches,
     env_kind,
+    fit_metaworld_hand_model,
     make_env,
     metaworld_frame_stack_check,
+    metaworld_hand_model_check,
     normalized_score_fn,
     observation_layout,
     true_reward_fn,
@@ -315,6 +317,19 @@ def stage_diffuser(cfg, run: RunDir, trajs, scores, block_ids, obs_dim, act_dim,
     return diffuser, summary
 
 
+def physical_validity_fn(f, trajs) -> Callable[[TensorDictBase], torch.Tensor] | None:
+    """The flow's optional Meta-World physics checks (``flow.max_frame_stack_error``,
+    ``flow.max_hand_model_error``; the hand model is fitted on the dataset), all of which must pass."""
+    checks = []
+    if f.get("max_frame_stack_error") is not None:
+        checks.append(metaworld_frame_stack_check(float(f.max_frame_stack_error)))
+    if f.get("max_hand_model_error") is not None:
+        checks.append(metaworld_hand_model_check(fit_metaworld_hand_model(trajs), float(f.max_hand_model_error)))
+    if not checks:
+        return None
+    return lambda samples: torch.stack([check(samples) for check in checks]).all(0)
+
+
 def stage_flow(cfg, run: RunDir, trajs, scores, block_ids, sampler, model, true_reward_fn, logger) -> dict:
     path = run.ckpt / "flow.pt"
     if run.done("flow"):
@@ -335,8 +350,7 @@ def stage_flow(cfg, run: RunDir, trajs, scores, block_ids, sampler, model, true_
         true_return_horizon=None if true_reward_fn is None or f.get("true_return_horizon") is None
         else int(f.true_return_horizon),
         ensemble_rule=str(f.get("ensemble_rule", "mean")), logger=logger,
-        validity_fn=None if f.get("max_frame_stack_error") is None
-        else metaworld_frame_stack_check(float(f.max_frame_stack_error)),
+        validity_fn=physical_validity_fn(f, trajs),
         progress=bool(cfg.progress),
     )
     res = flow(trajs, scores=scores, block_ids=block_ids)
@@ -455,9 +469,10 @@ def run(cfg: DictConfig) -> dict:
     query = dict(cfg.labels.get("query") or {})
     if query.get("strategy", "random") not in QUERY_STRATEGIES:
         raise ValueError(f"labels.query.strategy={query.get('strategy')!r}: choose one of {list(QUERY_STRATEGIES)}")
-    if cfg.flow.get("max_frame_stack_error") is not None and kind != "metaworld":
-        raise ValueError(f"flow.max_frame_stack_error is a Meta-World check (stacked previous frame); "
-                         f"env.name={cfg.env.name!r} is {kind}: leave it null")
+    for key, what in (("max_frame_stack_error", "stacked previous frame"), ("max_hand_model_error", "mocap hand")):
+        if cfg.flow.get(key) is not None and kind != "metaworld":
+            raise ValueError(f"flow.{key} is a Meta-World check ({what}); "
+                             f"env.name={cfg.env.name!r} is {kind}: leave it null")
     for key in ("score_model.horizon", "flow.true_return_horizon"):
         if OmegaConf.select(cfg, key) is not None and kind == "locomotion":
             raise ValueError(f"{key} is the stop-rule fill for tasks without terminal states (Meta-World); "

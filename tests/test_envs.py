@@ -187,3 +187,35 @@ def test_metaworld_true_reward_accepts_out_of_range_gripper(button_press_episode
     r_clip, s_clip = metaworld_true_reward("button-press-v3", clipped["observation"], clipped["action"],
                                            next_observation=clipped["next", "observation"])
     assert torch.equal(r_wide, r_clip) and torch.equal(s_wide, s_clip)
+
+
+@pytest.mark.integration
+def test_hand_model_fits_real_steps_and_flags_a_jittered_hand_path():
+    """The linear one-step hand model: ~mm residual on held-out real Meta-World steps, and a hand
+    path jittered by 1 cm per step (what an inconsistent generated trajectory looks like) far above."""
+    from torchrl_ftb.envs import fit_metaworld_hand_model, metaworld_hand_model_error
+
+    rng = np.random.default_rng(0)
+    episodes = []
+    for seed in range(4):
+        env = make_metaworld_gym_env("button-press-v3", seed=seed, random_goal=True)
+        pi = scripted_policy("button-press-v3")
+        obs, _ = env.reset()
+        o, a = [], []
+        for _ in range(60):
+            act = np.clip(pi(obs) + rng.normal(0, 0.5, 4), -1, 1)
+            o.append(obs), a.append(act)
+            obs, *_ = env.step(act)
+        episodes.append((np.array(o), np.array(a)))
+    td = TensorDict({"observation": torch.tensor(np.stack([e[0] for e in episodes]), dtype=torch.float32),
+                     "action": torch.tensor(np.stack([e[1] for e in episodes]), dtype=torch.float32),
+                     "mask": torch.ones(4, 60, dtype=torch.bool)}, [4, 60])
+    w = fit_metaworld_hand_model(td[:3])
+    held_out = float(metaworld_hand_model_error(td[3:], w)[0])
+    assert held_out < 0.003
+    jittered = td[3:].clone()
+    jittered["observation"][..., 0:3] += 0.01 * torch.randn(1, 60, 3, generator=torch.Generator().manual_seed(0))
+    assert float(metaworld_hand_model_error(jittered, w)[0]) > 5 * held_out + 0.005
+    with pytest.raises(ValueError, match="39"):
+        metaworld_hand_model_error(TensorDict({"observation": torch.zeros(1, 3, 11), "action": torch.zeros(1, 3, 4),
+                                               "mask": torch.ones(1, 3, dtype=torch.bool)}, [1, 3]), w)

@@ -111,10 +111,11 @@ def test_kill_during_diffuser_training_then_resume_end_to_end(tmp_path):
     flow_ckpt = torch.load(run_dir / "checkpoints" / "flow.pt", weights_only=True)
     td = {k: TensorDict(flow_ckpt[k]["data"], batch_size=flow_ckpt[k]["batch_size"]) for k in ("original", "trajectories")}
     src = flow_ckpt["source_step"] > 0
-    rows = [{"frame_stack_error_m": None}] * int(src.sum())
-    imp, invalid = gen.oracle_improvement("toy", td["original"], td["trajectories"], src, rows, horizon=32,
-                                          max_frame_stack_error=0.02)
-    assert invalid == 0 and imp["filled_32_frame_stack_checked"] == imp["filled_32"]
+    rows = [{"frame_stack_error_m": None, "hand_model_error_m": None}] * int(src.sum())
+    invalid = gen.physically_invalid(rows, max_frame_stack_error=0.02, max_hand_model_error=0.01)
+    assert invalid.shape == (int(src.sum()),) and not bool(invalid.any())  # no Meta-World checks on the toy
+    imp = gen.oracle_improvement("toy", td["original"], td["trajectories"], src, invalid, horizon=32)
+    assert imp["filled_32_physically_checked"] == imp["filled_32"]
     for ours, recipe_key in (("plain", "true_return"), ("filled_32", "true_return_filled")):
         for stat in ("mean_before", "mean_after", "max_after"):
             assert imp[ours][f"true_return_{stat}"] == pytest.approx(redone["flow"][f"{recipe_key}_{stat}"], abs=1e-4)
@@ -161,6 +162,8 @@ def test_bad_config_is_a_clear_error(tmp_path):
         recipe.run(_cfg(tmp_path / "e", "diffuser.observation_structure=true"))
     with pytest.raises(ValueError, match="max_frame_stack_error is a Meta-World check"):
         recipe.run(_cfg(tmp_path / "f", "flow.max_frame_stack_error=0.02"))
+    with pytest.raises(ValueError, match="max_hand_model_error is a Meta-World check"):
+        recipe.run(_cfg(tmp_path / "f", "flow.max_hand_model_error=0.01"))
     assert not (tmp_path / "f").exists()  # refused before anything is written
     with pytest.raises(ValueError, match="score_model.horizon is the stop-rule fill"):
         recipe.run(_cfg(tmp_path / "h", "env.name=hopper", "score_model.horizon=1000"))
@@ -236,3 +239,28 @@ def test_metaworld_config_is_the_paper_defaults_plus_the_fill_and_a_larger_top_k
     for section, key in (("score_model", "horizon"), ("flow", "top_k"), ("flow", "true_return_horizon")):
         a[section].pop(key), b[section].pop(key)
     assert a == b
+
+
+def test_physical_validity_checks_compose():
+    """flow.max_frame_stack_error and flow.max_hand_model_error: each rejects its own kind of broken
+    Meta-World sample, both must pass, and neither set means no extra check."""
+    recipe = _recipe()
+    g = torch.Generator().manual_seed(0)
+    obs, act = torch.zeros(3, 6, 39), torch.rand(3, 6, 4, generator=g) * 2 - 1
+    for t in range(1, 6):  # a mocap-like hand: it moves by the action / 100, the stack copies the frame
+        obs[:, t, 0:3] = obs[:, t - 1, 0:3] + act[:, t - 1, :3] / 100
+        obs[:, t, 18:36] = obs[:, t - 1, 0:18]
+    data = TensorDict({"observation": obs, "action": act, "mask": torch.ones(3, 6, dtype=torch.bool)}, [3, 6])
+    samples = data.clone()
+    samples["observation"][1, 3, 18:21] += 0.1  # stack broken, hand path fine
+    samples["observation"][2, 3:, 0:3] += 0.05  # hand jumps 5 cm (its stacked frame follows)
+    samples["observation"][2, 4:, 18:21] += 0.05
+    none = OmegaConf.create({"max_frame_stack_error": None, "max_hand_model_error": None})
+    assert recipe.physical_validity_fn(none, data) is None
+    stack = OmegaConf.create({"max_frame_stack_error": 0.02, "max_hand_model_error": None})
+    assert recipe.physical_validity_fn(stack, data)(samples).tolist() == [True, False, True]
+    hand = OmegaConf.create({"max_frame_stack_error": None, "max_hand_model_error": 0.005})
+    assert recipe.physical_validity_fn(hand, data)(samples).tolist() == [True, True, False]
+    both = OmegaConf.create({"max_frame_stack_error": 0.02, "max_hand_model_error": 0.005})
+    assert recipe.physical_validity_fn(both, data)(samples).tolist() == [True, False, False]
+

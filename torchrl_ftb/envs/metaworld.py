@@ -492,6 +492,83 @@ def metaworld_frame_stack_error(trajectories: TensorDictBase, *, pooled: bool = 
     return err.sum(-1) / pair.sum(-1).clamp_min(1)
 
 
+def _consecutive_pairs(trajectories: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(obs[t], a[t], obs[t+1])`` of every pair of consecutive valid steps, flattened, and the
+    ``[N, H - 1]`` pair mask they came from."""
+    obs, act = trajectories.get("observation").double(), trajectories.get("action").double()
+    mask = trajectories.get("mask").bool()
+    if obs.shape[-1] != 39:
+        raise ValueError(f"Meta-World hand model: 'observation' has {obs.shape[-1]} dims; "
+                         "Meta-World v3 observations have 39 (two stacked 18-d frames + 3-d goal)")
+    pair = mask[:, 1:] & mask[:, :-1]
+    return obs[:, :-1], act[:, :-1], obs[:, 1:], pair
+
+
+def _hand_features(obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
+    return torch.cat([obs, act, torch.ones_like(obs[..., :1])], -1)
+
+
+def fit_metaworld_hand_model(trajectories: TensorDictBase, *, ridge: float = 1e-6) -> torch.Tensor:
+    """Linear one-step model of the Meta-World hand, fitted on real trajectories.
+
+    A dynamics proxy for generated trajectories (Meta-World has no one-step oracle that takes
+    an arbitrary observation): the hand displacement ``obs[t+1, 0:3] - obs[t, 0:3]`` is regressed
+    on ``[obs[t], a[t], 1]`` by ridge regression. The hand is mocap-driven (the action moves its
+    target by ``a[:3] / 100``), so on real data the residual is about a millimetre
+    (``bench/diffusion_quality.py``); :func:`metaworld_hand_model_error` measures it on
+    generated trajectories.
+
+    Args:
+        trajectories: ``[N, H]`` real trajectories with 39-d ``observation``, ``action`` and ``mask``.
+        ridge: L2 penalty of the least-squares fit.
+
+    Returns:
+        ``[44, 3]`` float64 weights.
+
+    Example:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> obs, act = torch.zeros(1, 4, 39), torch.full((1, 4, 4), 0.5)
+        >>> obs[0, :, 0] = torch.arange(4) * 0.005  # the hand moves 5 mm per step
+        >>> td = TensorDict({"observation": obs, "action": act, "mask": torch.ones(1, 4, dtype=torch.bool)}, [1, 4])
+        >>> w = fit_metaworld_hand_model(td)
+        >>> round(float(metaworld_hand_model_error(td, w)[0]), 6)
+        0.0
+    """
+    o, a, o1, pair = _consecutive_pairs(trajectories)
+    if not bool(pair.any()):
+        raise ValueError("fit_metaworld_hand_model: no pair of consecutive valid steps to fit on")
+    x, y = _hand_features(o[pair], a[pair]), (o1[pair][:, :3] - o[pair][:, :3])
+    eye = torch.eye(x.shape[1], dtype=x.dtype)
+    return torch.linalg.solve(x.T @ x + ridge * eye, x.T @ y)
+
+
+def metaworld_hand_model_error(trajectories: TensorDictBase, weights: torch.Tensor, *,
+                               pooled: bool = False) -> torch.Tensor:
+    """Residual of :func:`fit_metaworld_hand_model` on (generated) trajectories, in metres.
+
+    The error of a transition is the Euclidean norm of the predicted minus the observed hand
+    displacement; only pairs of consecutive valid steps count. With
+    ``METAWORLD_OBSERVATION_LAYOUT`` the diffuser makes the frame stack exact by construction,
+    so this is the proxy left that tells a physically possible hand path from an impossible one.
+
+    Args:
+        trajectories: ``[N, H]`` batch with 39-d ``observation``, ``action`` and ``mask``.
+        weights: ``[44, 3]`` from :func:`fit_metaworld_hand_model`.
+        pooled: one number over all transitions instead of one mean per trajectory.
+
+    Returns:
+        ``[N]`` per-trajectory mean error (0 with < 2 valid steps), or a scalar with
+        ``pooled=True`` (NaN if the batch has no transition).
+    """
+    o, a, o1, pair = _consecutive_pairs(trajectories)
+    pred = _hand_features(o, a) @ weights.to(o)
+    err = ((o1[..., :3] - o[..., :3]) - pred).norm(dim=-1) * pair
+    if pooled:
+        return (err.sum() / pair.sum()).float() if bool(pair.any()) else torch.tensor(float("nan"))
+    return (err.sum(-1) / pair.sum(-1).clamp_min(1)).float()
+
+
 def metaworld_frame_stack_check(max_error: float) -> Callable[[TensorDictBase], torch.Tensor]:
     """A flow validity check: ``[N]`` True where the mean frame-stack error is ``<= max_error`` m.
 
@@ -513,5 +590,33 @@ def metaworld_frame_stack_check(max_error: float) -> Callable[[TensorDictBase], 
 
     def check(trajectories: TensorDictBase) -> torch.Tensor:
         return metaworld_frame_stack_error(trajectories) <= max_error
+
+    return check
+
+
+def metaworld_hand_model_check(weights: torch.Tensor, max_error: float) -> Callable[[TensorDictBase], torch.Tensor]:
+    """A flow validity check: ``[N]`` True where the hand path meets the one-step hand model.
+
+    For :class:`torchrl_ftb.flow.FlowToBetter` (``validity_fn``): rejects generated trajectories
+    whose hand moves in a way the actions cannot explain (:func:`metaworld_hand_model_error`
+    above ``max_error`` metres; real data: about 1 mm). The frame-stack check's counterpart for
+    samples whose stack is exact by construction (``METAWORLD_OBSERVATION_LAYOUT``).
+
+    Example:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> obs, act = torch.zeros(2, 4, 39), torch.full((2, 4, 4), 0.5)
+        >>> obs[:, :, 0] = torch.arange(4) * 0.005
+        >>> td = TensorDict({"observation": obs, "action": act, "mask": torch.ones(2, 4, dtype=torch.bool)}, [2, 4])
+        >>> w = fit_metaworld_hand_model(td)
+        >>> td["observation"][1, 2, 0] += 0.05  # the second hand jumps 5 cm and back
+        >>> metaworld_hand_model_check(w, 0.01)(td).tolist()
+        [True, False]
+    """
+    if not max_error >= 0:
+        raise ValueError(f"metaworld_hand_model_check: max_error must be >= 0 metres, got {max_error}")
+
+    def check(trajectories: TensorDictBase) -> torch.Tensor:
+        return metaworld_hand_model_error(trajectories, weights) <= max_error
 
     return check
