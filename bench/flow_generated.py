@@ -2,21 +2,27 @@
 
 Reads a finished run of ``recipes/ftb_offline.py`` (its ``checkpoints/flow.pt``) and reports,
 for every generated trajectory the flow accepted, its length, the flow step that produced it,
-its true return as the flow recorded it, and for Meta-World two dynamics proxies in metres --
-whether a high "true return" belongs to a physically consistent trajectory: the frame-stack
-error (:func:`torchrl_ftb.envs.metaworld_frame_stack_error`; 0 for real data, and 0 by
-construction with ``diffuser.observation_structure=true``) and the residual of a linear
-one-step hand model fitted on the run's original top-k
-(:func:`torchrl_ftb.envs.metaworld_hand_model_error`; about 1 mm on real data). No sampling, no training. JSON to
-``bench/results/flow_generated.json`` (command, config, commit, machine).
+its true return as the flow recorded it, and for Meta-World three dynamics proxies in metres --
+whether a high "true return" belongs to a physically possible trajectory:
+
+* the frame-stack error (:func:`torchrl_ftb.envs.metaworld_frame_stack_error`; 0 for real data,
+  and 0 by construction with ``diffuser.observation_structure=true``);
+* the residual of a linear one-step hand model fitted on the run's original top-k
+  (:func:`torchrl_ftb.envs.metaworld_hand_model_error`; about 1 mm on real data);
+* how far the object moves while the hand is out of reach
+  (:func:`torchrl_ftb.envs.metaworld_contactless_object_path`; the reach and the limit come from
+  the original top-k: no real trajectory there moves it further).
+
+No sampling, no training. JSON to ``bench/results/flow_generated.json`` (command, config, commit,
+machine).
 
 With ``--horizon H`` it also re-scores the original top-k and the final set with the
 ground-truth oracle (:func:`torchrl_ftb.flow.masked_true_returns`) under two return definitions,
 the plain sum and the stop-rule fill to ``H`` steps (a success ends a Meta-World episode, so
 the plain sum pays a slow success more than a fast one), and the same again with the final
-set's generated trajectories that exceed ``--max-frame-stack-error`` or
-``--max-hand-model-error`` replaced by the originals they displaced: the improvement target (issue #5) on runs made
-before the recipe reported the fill (``flow.true_return_horizon``).
+set's generated trajectories that fail any of the three checks replaced by the originals they
+displaced: the improvement target (issue #5) on runs made before the recipe reported the fill
+(``flow.true_return_horizon``).
 
 Usage::
 
@@ -36,18 +42,54 @@ from tensordict import TensorDict
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from torchrl_ftb.envs import (fit_metaworld_hand_model, metaworld_frame_stack_error,  # noqa: E402
+from torchrl_ftb.envs import (fit_metaworld_contact_reach, fit_metaworld_hand_model,  # noqa: E402
+                              metaworld_contactless_object_path, metaworld_frame_stack_error,
                               metaworld_hand_model_error, true_reward_fn)
 from torchrl_ftb.flow import masked_true_returns, return_summary  # noqa: E402
 from torchrl_ftb.provenance import run_record, write_json  # noqa: E402
 
 
-def physically_invalid(rows: list[dict], *, max_frame_stack_error: float, max_hand_model_error: float) -> torch.Tensor:
-    """``[n_generated]`` True where a generated trajectory breaks the frame stack or the hand model
-    by more than the limits (metres; rows without a check -- non-Meta-World -- count as valid)."""
+def physics_reference(original: TensorDict, *, contact_quantile: float) -> dict:
+    """The proxies' calibration on the real original top-k (empty off Meta-World): the hand model, its
+    residual there, the hand's reach and the furthest any original moves its object out of reach."""
+    if original.get("observation").shape[-1] != 39:
+        return {}
+    hand_w = fit_metaworld_hand_model(original)
+    reach = fit_metaworld_contact_reach(original, quantile=contact_quantile)
+    return {"hand_weights": hand_w,
+            "hand_model_error_original_m": float(metaworld_hand_model_error(original, hand_w, pooled=True)),
+            "contact_reach_m": reach,
+            "contactless_object_path_original_max_m": float(metaworld_contactless_object_path(original, reach).max())}
+
+
+def generated_rows(ckpt: dict, final: TensorDict, generated: torch.Tensor, ref: dict) -> list[dict]:
+    """One row per generated trajectory of the final set: length, flow step, score, recorded true return,
+    and the three physics proxies (``None`` off Meta-World)."""
+    if not bool(generated.any()):
+        return []
+    gen = final[generated]
+    proxies = {key: [None] * gen.batch_size[0] for key in
+               ("frame_stack_error_m", "hand_model_error_m", "contactless_object_path_m")}
+    if ref:
+        proxies = {"frame_stack_error_m": metaworld_frame_stack_error(gen).tolist(),
+                   "hand_model_error_m": metaworld_hand_model_error(gen, ref["hand_weights"]).tolist(),
+                   "contactless_object_path_m": metaworld_contactless_object_path(gen, ref["contact_reach_m"]).tolist()}
+    true = ckpt.get("true_returns")
+    return [{"length": int(gen.get("mask")[i].sum()), "flow_step": int(ckpt["source_step"][j]),
+             "score": float(ckpt["scores"][j]), "true_return": None if true is None else float(true[j]),
+             **{key: values[i] for key, values in proxies.items()}}
+            for i, j in enumerate(generated.nonzero().squeeze(-1).tolist())]
+
+
+def physically_invalid(rows: list[dict], *, max_frame_stack_error: float, max_hand_model_error: float,
+                       max_contactless_object_path: float = float("inf")) -> torch.Tensor:
+    """``[n_generated]`` True where a generated trajectory breaks the frame stack, the hand model or the
+    object-contact limit by more than the limits (metres; rows without a check -- non-Meta-World -- count
+    as valid)."""
     def over(key: str, limit: float) -> torch.Tensor:
         return torch.tensor([r.get(key) is not None and r[key] > limit for r in rows], dtype=torch.bool)
-    return over("frame_stack_error_m", max_frame_stack_error) | over("hand_model_error_m", max_hand_model_error)
+    return (over("frame_stack_error_m", max_frame_stack_error) | over("hand_model_error_m", max_hand_model_error)
+            | over("contactless_object_path_m", max_contactless_object_path))
 
 
 def oracle_improvement(task: str, original: TensorDict, final: TensorDict, generated: torch.Tensor,
@@ -82,47 +124,42 @@ def main() -> None:
     parser.add_argument("--max-hand-model-error", type=float, default=0.01,
                         help="metres: generated trajectories whose hand path misses the linear one-step hand "
                              "model fitted on the original top-k by more count as physically invalid (data: ~1 mm)")
+    parser.add_argument("--contact-quantile", type=float, default=0.99,
+                        help="the hand 'reaches' the object within the hand-object distance that holds this share of "
+                             "the original top-k's object motion; generated trajectories that move the object beyond "
+                             "reach further than any original does count as physically invalid")
     args = parser.parse_args()
     record = {**run_record(config={"run_dirs": [str(r) for r in args.run_dirs], "horizon": args.horizon,
                                    "max_frame_stack_error": args.max_frame_stack_error,
-                                   "max_hand_model_error": args.max_hand_model_error}), "runs": {}}
+                                   "max_hand_model_error": args.max_hand_model_error,
+                                   "contact_quantile": args.contact_quantile}), "runs": {}}
     for run in args.run_dirs:
         cfg = OmegaConf.load(run / "config.yaml")
         ckpt = torch.load(run / "checkpoints" / "flow.pt", weights_only=True)
         final = TensorDict(ckpt["trajectories"]["data"], batch_size=ckpt["trajectories"]["batch_size"])
         original = TensorDict(ckpt["original"]["data"], batch_size=ckpt["original"]["batch_size"])
         generated = ckpt["source_step"] > 0
-        metaworld = original.get("observation").shape[-1] == 39
-        # the hand model is fitted on the (real) original top-k; its residual there is the reference
-        hand_w = fit_metaworld_hand_model(original) if metaworld else None
-        rows = []
-        if bool(generated.any()):
-            gen = final[generated]
-            none = [None] * gen.batch_size[0]
-            stack = metaworld_frame_stack_error(gen).tolist() if metaworld else none
-            hand = metaworld_hand_model_error(gen, hand_w).tolist() if metaworld else none
-            true = ckpt.get("true_returns")
-            for i, j in enumerate(generated.nonzero().squeeze(-1).tolist()):
-                rows.append({"length": int(gen.get("mask")[i].sum()), "flow_step": int(ckpt["source_step"][j]),
-                             "score": float(ckpt["scores"][j]),
-                             "true_return": None if true is None else float(true[j]),
-                             "frame_stack_error_m": stack[i], "hand_model_error_m": hand[i]})
+        ref = physics_reference(original, contact_quantile=args.contact_quantile)
+        rows = generated_rows(ckpt, final, generated, ref)
         invalid = physically_invalid(rows, max_frame_stack_error=args.max_frame_stack_error,
-                                     max_hand_model_error=args.max_hand_model_error)
+                                     max_hand_model_error=args.max_hand_model_error,
+                                     max_contactless_object_path=ref.get("contactless_object_path_original_max_m",
+                                                                         float("inf")))
         entry = record["runs"][str(run)] = {
             "env": str(cfg.env.name), "seed": int(cfg.seed), "teacher": str(cfg.labels.teacher),
-            "top_k": int(cfg.flow.top_k), "observation_structure": bool(cfg.diffuser.get("observation_structure", False)),
-            "hand_model_error_original_m": float(metaworld_hand_model_error(original, hand_w, pooled=True)) if metaworld else None,
+            "top_k": int(cfg.flow.top_k),
+            "observation_structure": bool(cfg.diffuser.get("observation_structure", False)),
+            **{k: v for k, v in ref.items() if k != "hand_weights"},
             "generated_in_final_set": rows, "physically_invalid_in_final_set": int(invalid.sum())}
         if args.horizon is not None:
             entry["improvement"] = oracle_improvement(str(cfg.env.name), original, final, generated, invalid,
                                                       horizon=args.horizon)
-            print("  " + "; ".join(f"{name}: mean {v['true_return_mean_before']:.0f} -> {v['true_return_mean_after']:.0f}, "
-                                   f"max {v['true_return_max_before']:.0f} -> {v['true_return_max_after']:.0f}"
-                                   for name, v in record["runs"][str(run)]["improvement"].items()))
+            print("  " + "; ".join(f"{name}: mean {v['true_return_mean_before']:.0f} -> "
+                                   f"{v['true_return_mean_after']:.0f}, max {v['true_return_max_before']:.0f} -> "
+                                   f"{v['true_return_max_after']:.0f}" for name, v in entry["improvement"].items()))
         print(f"{cfg.env.name} seed {cfg.seed}: " + "; ".join(
             f"len {r['length']} return {r['true_return']:.0f} frame-stack {r['frame_stack_error_m']} "
-            f"hand model {r['hand_model_error_m']}" for r in rows))
+            f"hand model {r['hand_model_error_m']} contactless {r['contactless_object_path_m']}" for r in rows))
         write_json(args.out, record)
     print(f"-> {args.out}")
 

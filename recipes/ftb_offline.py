@@ -49,8 +49,10 @@ from torchrl_ftb.diffusion.train import CHECKPOINT_NAME
 from torchrl_ftb.envs import (
     check_env_matches,
     env_kind,
+    fit_metaworld_contact_reach,
     fit_metaworld_hand_model,
     make_env,
+    metaworld_contact_check,
     metaworld_frame_stack_check,
     metaworld_hand_model_check,
     normalized_score_fn,
@@ -319,12 +321,15 @@ def stage_diffuser(cfg, run: RunDir, trajs, scores, block_ids, obs_dim, act_dim,
 
 def physical_validity_fn(f, trajs) -> Callable[[TensorDictBase], torch.Tensor] | None:
     """The flow's optional Meta-World physics checks (``flow.max_frame_stack_error``,
-    ``flow.max_hand_model_error``; the hand model is fitted on the dataset), all of which must pass."""
+    ``flow.max_hand_model_error``, ``flow.max_contactless_object_path``; the hand model and the
+    hand's reach are fitted on the dataset), all of which must pass."""
     checks = []
     if f.get("max_frame_stack_error") is not None:
         checks.append(metaworld_frame_stack_check(float(f.max_frame_stack_error)))
     if f.get("max_hand_model_error") is not None:
         checks.append(metaworld_hand_model_check(fit_metaworld_hand_model(trajs), float(f.max_hand_model_error)))
+    if f.get("max_contactless_object_path") is not None:
+        checks.append(metaworld_contact_check(fit_metaworld_contact_reach(trajs), float(f.max_contactless_object_path)))
     if not checks:
         return None
     return lambda samples: torch.stack([check(samples) for check in checks]).all(0)
@@ -469,7 +474,8 @@ def run(cfg: DictConfig) -> dict:
     query = dict(cfg.labels.get("query") or {})
     if query.get("strategy", "random") not in QUERY_STRATEGIES:
         raise ValueError(f"labels.query.strategy={query.get('strategy')!r}: choose one of {list(QUERY_STRATEGIES)}")
-    for key, what in (("max_frame_stack_error", "stacked previous frame"), ("max_hand_model_error", "mocap hand")):
+    for key, what in (("max_frame_stack_error", "stacked previous frame"), ("max_hand_model_error", "mocap hand"),
+                      ("max_contactless_object_path", "hand-object contact")):
         if cfg.flow.get(key) is not None and kind != "metaworld":
             raise ValueError(f"flow.{key} is a Meta-World check ({what}); "
                              f"env.name={cfg.env.name!r} is {kind}: leave it null")

@@ -190,10 +190,12 @@ def test_metaworld_true_reward_accepts_out_of_range_gripper(button_press_episode
 
 
 @pytest.mark.integration
-def test_hand_model_fits_real_steps_and_flags_a_jittered_hand_path():
+def test_hand_model_and_contact_reach_on_real_steps():
     """The linear one-step hand model: ~mm residual on held-out real Meta-World steps, and a hand
-    path jittered by 1 cm per step (what an inconsistent generated trajectory looks like) far above."""
-    from torchrl_ftb.envs import fit_metaworld_hand_model, metaworld_hand_model_error
+    path jittered by 1 cm per step (what an inconsistent generated trajectory looks like) far above;
+    an object moved with the hand away counts as contactless motion, far above any real episode's."""
+    from torchrl_ftb.envs import (fit_metaworld_contact_reach, fit_metaworld_hand_model,
+                                  metaworld_contactless_object_path, metaworld_hand_model_error)
 
     rng = np.random.default_rng(0)
     episodes = []
@@ -216,6 +218,14 @@ def test_hand_model_fits_real_steps_and_flags_a_jittered_hand_path():
     jittered = td[3:].clone()
     jittered["observation"][..., 0:3] += 0.01 * torch.randn(1, 60, 3, generator=torch.Generator().manual_seed(0))
     assert float(metaworld_hand_model_error(jittered, w)[0]) > 5 * held_out + 0.005
+    # the hand's reach: the button moves only when the hand presses it, a few cm from its reference point
+    reach = fit_metaworld_contact_reach(td)
+    assert 0.01 < reach < 0.2
+    real_max = float(metaworld_contactless_object_path(td, reach).max())
+    pressed_from_afar = td[3:].clone()  # the button travels 10 cm while the hand stays where it started
+    pressed_from_afar["observation"][..., 0:3] = pressed_from_afar["observation"][:, :1, 0:3]
+    pressed_from_afar["observation"][..., 5] += torch.linspace(0, 0.1, 60)
+    assert float(metaworld_contactless_object_path(pressed_from_afar, reach)[0]) > real_max + 0.05
     with pytest.raises(ValueError, match="39"):
         metaworld_hand_model_error(TensorDict({"observation": torch.zeros(1, 3, 11), "action": torch.zeros(1, 3, 4),
                                                "mask": torch.ones(1, 3, dtype=torch.bool)}, [1, 3]), w)

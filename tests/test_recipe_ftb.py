@@ -164,6 +164,8 @@ def test_bad_config_is_a_clear_error(tmp_path):
         recipe.run(_cfg(tmp_path / "f", "flow.max_frame_stack_error=0.02"))
     with pytest.raises(ValueError, match="max_hand_model_error is a Meta-World check"):
         recipe.run(_cfg(tmp_path / "f", "flow.max_hand_model_error=0.01"))
+    with pytest.raises(ValueError, match="max_contactless_object_path is a Meta-World check"):
+        recipe.run(_cfg(tmp_path / "f", "flow.max_contactless_object_path=0.1"))
     assert not (tmp_path / "f").exists()  # refused before anything is written
     with pytest.raises(ValueError, match="score_model.horizon is the stop-rule fill"):
         recipe.run(_cfg(tmp_path / "h", "env.name=hopper", "score_model.horizon=1000"))
@@ -242,25 +244,28 @@ def test_metaworld_config_is_the_paper_defaults_plus_the_fill_and_a_larger_top_k
 
 
 def test_physical_validity_checks_compose():
-    """flow.max_frame_stack_error and flow.max_hand_model_error: each rejects its own kind of broken
-    Meta-World sample, both must pass, and neither set means no extra check."""
+    """flow.max_frame_stack_error, flow.max_hand_model_error and flow.max_contactless_object_path: each
+    rejects its own kind of broken Meta-World sample, all must pass, and none set means no extra check."""
     recipe = _recipe()
     g = torch.Generator().manual_seed(0)
-    obs, act = torch.zeros(3, 6, 39), torch.rand(3, 6, 4, generator=g) * 2 - 1
+    obs, act = torch.zeros(4, 6, 39), torch.rand(4, 6, 4, generator=g) * 2 - 1
     for t in range(1, 6):  # a mocap-like hand: it moves by the action / 100, the stack copies the frame
         obs[:, t, 0:3] = obs[:, t - 1, 0:3] + act[:, t - 1, :3] / 100
-        obs[:, t, 18:36] = obs[:, t - 1, 0:18]
-    data = TensorDict({"observation": obs, "action": act, "mask": torch.ones(3, 6, dtype=torch.bool)}, [3, 6])
+    obs[..., 4:7] = obs[..., 0:3] + torch.tensor([0.03, 0.0, 0.0])  # the object is pushed 3 cm ahead of the hand
+    obs[:, 1:, 18:36] = obs[:, :-1, 0:18]
+    data = TensorDict({"observation": obs, "action": act, "mask": torch.ones(4, 6, dtype=torch.bool)}, [4, 6])
     samples = data.clone()
     samples["observation"][1, 3, 18:21] += 0.1  # stack broken, hand path fine
-    samples["observation"][2, 3:, 0:3] += 0.05  # hand jumps 5 cm (its stacked frame follows)
-    samples["observation"][2, 4:, 18:21] += 0.05
-    none = OmegaConf.create({"max_frame_stack_error": None, "max_hand_model_error": None})
-    assert recipe.physical_validity_fn(none, data) is None
-    stack = OmegaConf.create({"max_frame_stack_error": 0.02, "max_hand_model_error": None})
-    assert recipe.physical_validity_fn(stack, data)(samples).tolist() == [True, False, True]
-    hand = OmegaConf.create({"max_frame_stack_error": None, "max_hand_model_error": 0.005})
-    assert recipe.physical_validity_fn(hand, data)(samples).tolist() == [True, True, False]
-    both = OmegaConf.create({"max_frame_stack_error": 0.02, "max_hand_model_error": 0.005})
-    assert recipe.physical_validity_fn(both, data)(samples).tolist() == [True, False, False]
-
+    samples["observation"][2, 3:, 0:3] += 0.05  # hand (and its object) jump 5 cm; the stacked frame follows
+    samples["observation"][2, 3:, 4:7] += 0.05
+    samples["observation"][2, 1:, 18:36] = samples["observation"][2, :-1, 0:18]
+    samples["observation"][3, :, 4] += torch.arange(6) * 0.05  # the object slides away on its own
+    samples["observation"][3, 1:, 22] = samples["observation"][3, :-1, 4]
+    cfg = lambda stack, hand, contact: OmegaConf.create(  # noqa: E731
+        {"max_frame_stack_error": stack, "max_hand_model_error": hand, "max_contactless_object_path": contact})
+    assert recipe.physical_validity_fn(cfg(None, None, None), data) is None
+    assert recipe.physical_validity_fn(cfg(0.02, None, None), data)(samples).tolist() == [True, False, True, True]
+    hand = recipe.physical_validity_fn(cfg(None, 0.005, None), data)(samples).tolist()
+    assert hand[0] and hand[1] and not hand[2]
+    assert recipe.physical_validity_fn(cfg(None, None, 0.01), data)(samples).tolist() == [True, True, True, False]
+    assert recipe.physical_validity_fn(cfg(0.02, 0.005, 0.01), data)(samples).tolist() == [True, False, False, False]

@@ -620,3 +620,75 @@ def metaworld_hand_model_check(weights: torch.Tensor, max_error: float) -> Calla
         return metaworld_hand_model_error(trajectories, weights) <= max_error
 
     return check
+
+
+def _hand_object_steps(trajectories: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Per transition ``[N, H - 1]``: the object's displacement (``obs[4:7]``), the smaller hand-object
+    distance of its two ends (hand: ``obs[0:3]``) and the pair mask."""
+    obs, mask = trajectories.get("observation").double(), trajectories.get("mask").bool()
+    if obs.shape[-1] != 39:
+        raise ValueError(f"Meta-World contact check: 'observation' has {obs.shape[-1]} dims; "
+                         "Meta-World v3 observations have 39 (two stacked 18-d frames + 3-d goal)")
+    hand, obj = obs[..., 0:3], obs[..., 4:7]
+    dist = (hand - obj).norm(dim=-1)
+    return (obj[:, 1:] - obj[:, :-1]).norm(dim=-1), torch.minimum(dist[:, 1:], dist[:, :-1]), mask[:, 1:] & mask[:, :-1]
+
+
+def fit_metaworld_contact_reach(trajectories: TensorDictBase, *, quantile: float = 0.99,
+                                moving: float = 0.001) -> float:
+    """How close the hand is to the object when the object moves, on real Meta-World trajectories.
+
+    Returns the hand-object distance (metres) within which ``quantile`` of the object's motion
+    happens (steps where it moves more than ``moving`` m): what "the hand is at the object"
+    means for this task (the object's reference point and size differ between tasks).
+    :func:`metaworld_contactless_object_path` counts the motion beyond it.
+
+    Example:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> obs = torch.zeros(1, 5, 39)
+        >>> obs[0, :, 4] = torch.tensor([0.0, 0.01, 0.02, 0.02, 0.02])  # pushed twice...
+        >>> obs[0, :, 0] = obs[0, :, 4] - 0.05  # ...by a hand 5 cm behind it
+        >>> td = TensorDict({"observation": obs, "mask": torch.ones(1, 5, dtype=torch.bool)}, [1, 5])
+        >>> round(fit_metaworld_contact_reach(td), 3)
+        0.05
+    """
+    step, dist, pair = _hand_object_steps(trajectories)
+    sel = pair & (step > moving)
+    if not bool(sel.any()):
+        raise ValueError("fit_metaworld_contact_reach: the object never moves in these trajectories")
+    return float(torch.quantile(dist[sel], quantile))
+
+
+def metaworld_contactless_object_path(trajectories: TensorDictBase, reach: float) -> torch.Tensor:
+    """``[N]`` metres the object moves while the hand is out of ``reach`` (both ends of a step).
+
+    A Meta-World object moves only when the gripper pushes, pulls or carries it, then slides on
+    for a little; a generated trajectory that carries the object to its goal while the hand stays
+    away -- a high true return the simulator could never produce -- moves it far more than any real
+    trajectory does. Calibrate ``reach`` with :func:`fit_metaworld_contact_reach` and the limit with
+    this function on real data.
+
+    Example:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> obs = torch.zeros(1, 4, 39)
+        >>> obs[0, :, 4] = torch.tensor([0.0, 0.1, 0.2, 0.3])  # the object slides 30 cm, the hand stays at 0
+        >>> td = TensorDict({"observation": obs, "mask": torch.ones(1, 4, dtype=torch.bool)}, [1, 4])
+        >>> [round(x, 2) for x in metaworld_contactless_object_path(td, reach=0.05).tolist()]
+        [0.2]
+    """
+    step, dist, pair = _hand_object_steps(trajectories)
+    return (step * (pair & (dist > reach))).sum(-1).float()
+
+
+def metaworld_contact_check(reach: float, max_path: float) -> Callable[[TensorDictBase], torch.Tensor]:
+    """A flow validity check: ``[N]`` True where the object moves at most ``max_path`` metres while
+    the hand is out of ``reach`` (:func:`metaworld_contactless_object_path`)."""
+    if not (reach >= 0 and max_path >= 0):
+        raise ValueError(f"metaworld_contact_check: reach and max_path must be >= 0 metres, got {reach}, {max_path}")
+
+    def check(trajectories: TensorDictBase) -> torch.Tensor:
+        return metaworld_contactless_object_path(trajectories, reach) <= max_path
+
+    return check
