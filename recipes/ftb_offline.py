@@ -53,8 +53,11 @@ from torchrl_ftb.envs import (
     fit_metaworld_hand_model,
     make_env,
     metaworld_contact_check,
+    metaworld_contactless_object_path,
     metaworld_frame_stack_check,
+    metaworld_frame_stack_error,
     metaworld_hand_model_check,
+    metaworld_hand_model_error,
     normalized_score_fn,
     observation_layout,
     true_reward_fn,
@@ -335,6 +338,19 @@ def physical_validity_fn(f, trajs) -> Callable[[TensorDictBase], torch.Tensor] |
     return lambda samples: torch.stack([check(samples) for check in checks]).all(0)
 
 
+def metaworld_validity(generated: TensorDictBase, data: TensorDictBase) -> dict[str, float]:
+    """Validity of the flow's accepted Meta-World samples (paper §4.3 scores it with an oracle
+    dynamics model; Meta-World has none): the mean of the three physics proxies over the samples,
+    beside the dataset's own as the reference (metres; hand model and reach fitted on the dataset)."""
+    hand_w, reach = fit_metaworld_hand_model(data), fit_metaworld_contact_reach(data)
+    out = {}
+    for name, td in (("generated", generated), ("dataset", data)):
+        out[f"frame_stack_error_{name}"] = float(metaworld_frame_stack_error(td).mean())
+        out[f"hand_model_error_{name}"] = float(metaworld_hand_model_error(td, hand_w).mean())
+        out[f"contactless_object_path_{name}"] = float(metaworld_contactless_object_path(td, reach).mean())
+    return out
+
+
 def stage_flow(cfg, run: RunDir, trajs, scores, block_ids, sampler, model, true_reward_fn, logger) -> dict:
     path = run.ckpt / "flow.pt"
     if run.done("flow"):
@@ -427,6 +443,11 @@ def final_table(metrics: dict) -> list[tuple[str, str]]:
         ("generated trajectories in final set", _fmt(fl["fraction_generated_in_final"])),
         ("score Spearman vs true return", _fmt(metrics["score_quality"].get("spearman_return", float("nan")))),
     ]
+    if "validity" in metrics.get("analysis", {}):
+        v = metrics["analysis"]["validity"]
+        rows.append(("accepted samples: frame-stack / hand-model error / contactless object path, m (dataset)",
+                     " / ".join(f"{_fmt(v[f'{k}_generated'])} ({_fmt(v[f'{k}_dataset'])})"
+                                for k in ("frame_stack_error", "hand_model_error", "contactless_object_path"))))
     if "top_k_success" in metrics["score_quality"]:
         rows.append(("successes in the top-k (dataset share)",
                      f"{_fmt(metrics['score_quality']['top_k_success'])} "
@@ -637,6 +658,8 @@ def run(cfg: DictConfig) -> dict:
     if flow["generated"].batch_size[0]:
         nov = novelty(flow["generated"], trajs.select("observation", "action", "mask"), seed=int(cfg.seed))
         analysis["novelty"] = {"generated_mean": nov["generated_mean"], "perturbed_mean": nov["perturbed_mean"]}
+        if kind == "metaworld":
+            analysis["validity"] = metaworld_validity(flow["generated"], trajs)
 
     metrics = {
         "env": cfg.env.name, "preset": cfg.preset, "teacher": teacher.name, "seed": int(cfg.seed),

@@ -269,3 +269,16 @@ def test_physical_validity_checks_compose():
     assert hand[0] and hand[1] and not hand[2]
     assert recipe.physical_validity_fn(cfg(None, None, 0.01), data)(samples).tolist() == [True, True, True, False]
     assert recipe.physical_validity_fn(cfg(0.02, 0.005, 0.01), data)(samples).tolist() == [True, False, False, False]
+    # the recipe's validity analysis: the same proxies' means over the accepted samples, the dataset beside them
+    v = recipe.metaworld_validity(samples, data)
+    assert v["frame_stack_error_dataset"] == 0 and v["frame_stack_error_generated"] > 0
+    assert v["hand_model_error_generated"] > 10 * v["hand_model_error_dataset"]
+    assert v["contactless_object_path_dataset"] < 0.01 < 0.04 < v["contactless_object_path_generated"]
+    rows = dict(recipe.final_table({"env": "x", "preset": "cpu", "teacher": "return", "wall_time_s": 1.0,
+                                    "eval": {"return_mean": 0.0, "return_std": 0.0, "length_mean": 1.0},
+                                    "flow": {"score_mean_before": 0.0, "score_mean_after": 0.0,
+                                             "flow_steps_run": 1, "flow_steps_planned": 1,
+                                             "fraction_generated_in_final": 0.5},
+                                    "score_quality": {}, "analysis": {"validity": v}}))
+    assert any(k.startswith("accepted samples: frame-stack") for k in rows)
+
