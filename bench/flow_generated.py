@@ -28,10 +28,12 @@ Usage::
 
     python bench/flow_generated.py --run-dirs outputs/table1_v2/sweep-into-v3/return/ftb/seed1
     python bench/flow_generated.py --run-dirs RUN... --horizon 500 --out bench/results/flow_improvement.json
+    python bench/flow_generated.py --summarize bench/results/flow_improvement*.json   # Markdown table
 """
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 
@@ -113,9 +115,40 @@ def oracle_improvement(task: str, original: TensorDict, final: TensorDict, gener
     return out
 
 
+def _before_after(v: dict, stat: str) -> str:
+    return f"{v[f'true_return_{stat}_before']:.0f} → {v[f'true_return_{stat}_after']:.0f}"
+
+
+def summary_table(records: dict[str, dict]) -> str:
+    """Markdown, one row per run of the given ``--horizon`` results: the final set's generated trajectories,
+    how many fail which proxy, and the oracle mean / max before → after, as flowed and with those swapped back."""
+    rows = ["| file | task | seed | diffuser | generated in final set | fail: frame stack / hand model / contact "
+            "| plain mean | plain max | filled mean | filled max |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for name, record in records.items():
+        limits = record["config"]
+        for entry in record["runs"].values():
+            gen, imp = entry["generated_in_final_set"], entry.get("improvement")
+            if imp is None:
+                continue
+            fails = [sum(r.get(key) is not None and r[key] > limit for r in gen) for key, limit in (
+                ("frame_stack_error_m", limits["max_frame_stack_error"]),
+                ("hand_model_error_m", limits["max_hand_model_error"]),
+                ("contactless_object_path_m", entry.get("contactless_object_path_original_max_m") or float("inf")))]
+            filled = next(k for k in imp if k.startswith("filled_") and not k.endswith("_checked"))
+            cols = [f"{_before_after(imp[base], stat)} "
+                    f"({imp[base + '_physically_checked'][f'true_return_{stat}_after']:.0f} checked)"
+                    for base in ("plain", filled) for stat in ("mean", "max")]
+            rows.append(f"| {name} | {entry['env']} | {entry['seed']} | "
+                        f"{'structure' if entry.get('observation_structure') else 'raw'} | {len(gen)} | "
+                        f"{' / '.join(map(str, fails))} (any: {entry['physically_invalid_in_final_set']}) | "
+                        + " | ".join(cols) + " |")
+    return "\n".join(rows)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--run-dirs", nargs="+", type=Path, required=True)
+    parser.add_argument("--run-dirs", nargs="+", type=Path)
+    parser.add_argument("--summarize", nargs="+", type=Path, help="print the Markdown table of these results files")
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "flow_generated.json")
     parser.add_argument("--horizon", type=int, default=None,
                         help="also report the oracle improvement, plain and with the stop-rule fill to this many steps")
@@ -129,6 +162,11 @@ def main() -> None:
                              "the original top-k's object motion; generated trajectories that move the object beyond "
                              "reach further than any original does count as physically invalid")
     args = parser.parse_args()
+    if args.summarize:
+        print(summary_table({path.stem: json.loads(path.read_text()) for path in args.summarize}))
+        return
+    if not args.run_dirs:
+        parser.error("--run-dirs or --summarize is required")
     record = {**run_record(config={"run_dirs": [str(r) for r in args.run_dirs], "horizon": args.horizon,
                                    "max_frame_stack_error": args.max_frame_stack_error,
                                    "max_hand_model_error": args.max_hand_model_error,

@@ -111,11 +111,16 @@ def test_kill_during_diffuser_training_then_resume_end_to_end(tmp_path):
     flow_ckpt = torch.load(run_dir / "checkpoints" / "flow.pt", weights_only=True)
     td = {k: TensorDict(flow_ckpt[k]["data"], batch_size=flow_ckpt[k]["batch_size"]) for k in ("original", "trajectories")}
     src = flow_ckpt["source_step"] > 0
-    rows = [{"frame_stack_error_m": None, "hand_model_error_m": None}] * int(src.sum())
+    rows = [{"frame_stack_error_m": None, "hand_model_error_m": None, "contactless_object_path_m": None}] * int(src.sum())
     invalid = gen.physically_invalid(rows, max_frame_stack_error=0.02, max_hand_model_error=0.01)
     assert invalid.shape == (int(src.sum()),) and not bool(invalid.any())  # no Meta-World checks on the toy
     imp = gen.oracle_improvement("toy", td["original"], td["trajectories"], src, invalid, horizon=32)
     assert imp["filled_32_physically_checked"] == imp["filled_32"]
+    table = gen.summary_table({"cells": {
+        "config": {"max_frame_stack_error": 0.02, "max_hand_model_error": 0.01},
+        "runs": {"r": {"env": "toy", "seed": 0, "generated_in_final_set": rows, "physically_invalid_in_final_set": 0,
+                       "improvement": imp}}}}).splitlines()
+    assert len(table) == 3 and table[2].startswith("| cells | toy | 0 | raw |") and "(any: 0)" in table[2]
     for ours, recipe_key in (("plain", "true_return"), ("filled_32", "true_return_filled")):
         for stat in ("mean_before", "mean_after", "max_after"):
             assert imp[ours][f"true_return_{stat}"] == pytest.approx(redone["flow"][f"{recipe_key}_{stat}"], abs=1e-4)
