@@ -342,12 +342,17 @@ def metaworld_validity(generated: TensorDictBase, data: TensorDictBase) -> dict[
     """Validity of the flow's accepted Meta-World samples (paper §4.3 scores it with an oracle
     dynamics model; Meta-World has none): the mean of the three physics proxies over the samples,
     beside the dataset's own as the reference (metres; hand model and reach fitted on the dataset)."""
-    hand_w, reach = fit_metaworld_hand_model(data), fit_metaworld_contact_reach(data)
+    hand_w = fit_metaworld_hand_model(data)
+    try:
+        reach = fit_metaworld_contact_reach(data)
+    except ValueError:  # a dataset whose object never moves has no reach: report NaN, do not fail the run
+        reach = None
     out = {}
     for name, td in (("generated", generated), ("dataset", data)):
         out[f"frame_stack_error_{name}"] = float(metaworld_frame_stack_error(td).mean())
         out[f"hand_model_error_{name}"] = float(metaworld_hand_model_error(td, hand_w).mean())
-        out[f"contactless_object_path_{name}"] = float(metaworld_contactless_object_path(td, reach).mean())
+        out[f"contactless_object_path_{name}"] = (float("nan") if reach is None else
+                                                  float(metaworld_contactless_object_path(td, reach).mean()))
     return out
 
 

@@ -286,4 +286,9 @@ def test_physical_validity_checks_compose():
                                              "fraction_generated_in_final": 0.5},
                                     "score_quality": {}, "analysis": {"validity": v}}))
     assert any(k.startswith("accepted samples: frame-stack") for k in rows)
+    still = data.clone()
+    still["observation"][..., 4:7] = 0.0  # an object that never moves: no reach to fit, NaN instead of a failed run
+    v = recipe.metaworld_validity(samples, still)
+    assert v["contactless_object_path_generated"] != v["contactless_object_path_generated"]  # NaN
+    assert v["hand_model_error_generated"] > 0
 

@@ -684,7 +684,17 @@ def metaworld_contactless_object_path(trajectories: TensorDictBase, reach: float
 
 def metaworld_contact_check(reach: float, max_path: float) -> Callable[[TensorDictBase], torch.Tensor]:
     """A flow validity check: ``[N]`` True where the object moves at most ``max_path`` metres while
-    the hand is out of ``reach`` (:func:`metaworld_contactless_object_path`)."""
+    the hand is out of ``reach`` (:func:`metaworld_contactless_object_path`).
+
+    Example:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> obs = torch.zeros(2, 4, 39)
+        >>> obs[1, :, 4] = torch.tensor([0.0, 0.1, 0.2, 0.3])  # the second object slides off on its own
+        >>> td = TensorDict({"observation": obs, "mask": torch.ones(2, 4, dtype=torch.bool)}, [2, 4])
+        >>> metaworld_contact_check(reach=0.05, max_path=0.1)(td).tolist()
+        [True, False]
+    """
     if not (reach >= 0 and max_path >= 0):
         raise ValueError(f"metaworld_contact_check: reach and max_path must be >= 0 metres, got {reach}, {max_path}")
 
