@@ -45,10 +45,13 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from torchrl_ftb.envs import (fit_metaworld_contact_reach, fit_metaworld_hand_model,  # noqa: E402
-                              metaworld_contactless_object_path, metaworld_frame_stack_error,
-                              metaworld_hand_model_error, true_reward_fn)
+                              metaworld_contactless_object_path, metaworld_hand_model_error,
+                              metaworld_physics_errors, true_reward_fn)
 from torchrl_ftb.flow import masked_true_returns, return_summary  # noqa: E402
 from torchrl_ftb.provenance import run_record, write_json  # noqa: E402
+
+#: the dynamics proxies, in the order of the tables (rows store each as ``<name>_m``)
+PROXIES = ("frame_stack_error", "hand_model_error", "contactless_object_path")
 
 
 def physics_reference(original: TensorDict, *, contact_quantile: float) -> dict:
@@ -70,12 +73,10 @@ def generated_rows(ckpt: dict, final: TensorDict, generated: torch.Tensor, ref: 
     if not bool(generated.any()):
         return []
     gen = final[generated]
-    proxies = {key: [None] * gen.batch_size[0] for key in
-               ("frame_stack_error_m", "hand_model_error_m", "contactless_object_path_m")}
+    proxies = {f"{key}_m": [None] * gen.batch_size[0] for key in PROXIES}
     if ref:
-        proxies = {"frame_stack_error_m": metaworld_frame_stack_error(gen).tolist(),
-                   "hand_model_error_m": metaworld_hand_model_error(gen, ref["hand_weights"]).tolist(),
-                   "contactless_object_path_m": metaworld_contactless_object_path(gen, ref["contact_reach_m"]).tolist()}
+        errors = metaworld_physics_errors(gen, hand_weights=ref["hand_weights"], reach=ref["contact_reach_m"])
+        proxies = {f"{key}_m": errors[key].tolist() for key in PROXIES}
     true = ckpt.get("true_returns")
     return [{"length": int(gen.get("mask")[i].sum()), "flow_step": int(ckpt["source_step"][j]),
              "score": float(ckpt["scores"][j]), "true_return": None if true is None else float(true[j]),
@@ -83,15 +84,18 @@ def generated_rows(ckpt: dict, final: TensorDict, generated: torch.Tensor, ref: 
             for i, j in enumerate(generated.nonzero().squeeze(-1).tolist())]
 
 
-def physically_invalid(rows: list[dict], *, max_frame_stack_error: float, max_hand_model_error: float,
-                       max_contactless_object_path: float = float("inf")) -> torch.Tensor:
-    """``[n_generated]`` True where a generated trajectory breaks the frame stack, the hand model or the
-    object-contact limit by more than the limits (metres; rows without a check -- non-Meta-World -- count
-    as valid)."""
-    def over(key: str, limit: float) -> torch.Tensor:
-        return torch.tensor([r.get(key) is not None and r[key] > limit for r in rows], dtype=torch.bool)
-    return (over("frame_stack_error_m", max_frame_stack_error) | over("hand_model_error_m", max_hand_model_error)
-            | over("contactless_object_path_m", max_contactless_object_path))
+def proxy_failures(rows: list[dict], *, max_frame_stack_error: float, max_hand_model_error: float,
+                   max_contactless_object_path: float = float("inf")) -> dict[str, torch.Tensor]:
+    """Per proxy, ``[n_generated]`` True where a generated trajectory exceeds its limit (metres; rows
+    without a check -- non-Meta-World -- pass)."""
+    limits = dict(zip(PROXIES, (max_frame_stack_error, max_hand_model_error, max_contactless_object_path)))
+    return {key: torch.tensor([r.get(f"{key}_m") is not None and r[f"{key}_m"] > limit for r in rows], dtype=torch.bool)
+            for key, limit in limits.items()}
+
+
+def physically_invalid(rows: list[dict], **limits: float) -> torch.Tensor:
+    """``[n_generated]`` True where a generated trajectory fails any proxy (:func:`proxy_failures`)."""
+    return torch.stack(list(proxy_failures(rows, **limits).values())).any(0)
 
 
 def oracle_improvement(task: str, original: TensorDict, final: TensorDict, generated: torch.Tensor,
@@ -130,10 +134,10 @@ def summary_table(records: dict[str, dict]) -> str:
             gen, imp = entry["generated_in_final_set"], entry.get("improvement")
             if imp is None:
                 continue
-            fails = [sum(r.get(key) is not None and r[key] > limit for r in gen) for key, limit in (
-                ("frame_stack_error_m", limits["max_frame_stack_error"]),
-                ("hand_model_error_m", limits["max_hand_model_error"]),
-                ("contactless_object_path_m", entry.get("contactless_object_path_original_max_m") or float("inf")))]
+            fails = [int(f.sum()) for f in proxy_failures(
+                gen, max_frame_stack_error=limits["max_frame_stack_error"],
+                max_hand_model_error=limits["max_hand_model_error"],
+                max_contactless_object_path=entry.get("contactless_object_path_original_max_m") or float("inf")).values()]
             filled = next(k for k in imp if k.startswith("filled_") and not k.endswith("_checked"))
             cols = [f"{_before_after(imp[base], stat)} "
                     f"({imp[base + '_physically_checked'][f'true_return_{stat}_after']:.0f} checked)"

@@ -53,11 +53,9 @@ from torchrl_ftb.envs import (
     fit_metaworld_hand_model,
     make_env,
     metaworld_contact_check,
-    metaworld_contactless_object_path,
     metaworld_frame_stack_check,
-    metaworld_frame_stack_error,
     metaworld_hand_model_check,
-    metaworld_hand_model_error,
+    metaworld_physics_errors,
     normalized_score_fn,
     observation_layout,
     true_reward_fn,
@@ -349,10 +347,9 @@ def metaworld_validity(generated: TensorDictBase, data: TensorDictBase) -> dict[
         reach = None
     out = {}
     for name, td in (("generated", generated), ("dataset", data)):
-        out[f"frame_stack_error_{name}"] = float(metaworld_frame_stack_error(td).mean())
-        out[f"hand_model_error_{name}"] = float(metaworld_hand_model_error(td, hand_w).mean())
-        out[f"contactless_object_path_{name}"] = (float("nan") if reach is None else
-                                                  float(metaworld_contactless_object_path(td, reach).mean()))
+        errors = metaworld_physics_errors(td, hand_weights=hand_w, reach=reach)
+        for proxy in ("frame_stack_error", "hand_model_error", "contactless_object_path"):
+            out[f"{proxy}_{name}"] = float(errors[proxy].mean()) if proxy in errors else float("nan")
     return out
 
 

@@ -454,6 +454,24 @@ def metaworld_reward_error(
     return out
 
 
+def _metaworld_steps(trajectories: TensorDictBase, what: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """The (checked) 39-d ``observation`` ``[N, H, 39]`` and the ``[N, H - 1]`` mask of pairs of
+    consecutive valid steps, which every Meta-World dynamics proxy below is a mean over."""
+    obs, mask = trajectories.get("observation"), trajectories.get("mask").bool()
+    if obs.shape[-1] != 39:
+        raise ValueError(f"{what}: 'observation' has {obs.shape[-1]} dims; "
+                         "Meta-World v3 observations have 39 (two stacked 18-d frames + 3-d goal)")
+    return obs, mask[:, 1:] & mask[:, :-1]
+
+
+def _mean_over_steps(err: torch.Tensor, pair: torch.Tensor, *, pooled: bool) -> torch.Tensor:
+    """Per-transition errors ``[N, H - 1]`` (0 off ``pair``) -> ``[N]`` means (0 with no transition),
+    or with ``pooled`` one mean over all transitions (NaN with none)."""
+    if pooled:
+        return err.sum() / pair.sum() if bool(pair.any()) else torch.tensor(float("nan"))
+    return err.sum(-1) / pair.sum(-1).clamp_min(1)
+
+
 def metaworld_frame_stack_error(trajectories: TensorDictBase, *, pooled: bool = False) -> torch.Tensor:
     """Frame-stack consistency of Meta-World (generated) trajectories, in metres.
 
@@ -481,26 +499,16 @@ def metaworld_frame_stack_error(trajectories: TensorDictBase, *, pooled: bool = 
         >>> round(float(metaworld_frame_stack_error(td)[0]), 4)  # two transitions: 5 mm and 0
         0.0025
     """
-    obs, mask = trajectories.get("observation"), trajectories.get("mask").bool()
-    if obs.shape[-1] != 39:
-        raise ValueError(f"metaworld_frame_stack_error: 'observation' has {obs.shape[-1]} dims; "
-                         "Meta-World v3 observations have 39 (two stacked 18-d frames + 3-d goal)")
-    pair = mask[:, 1:] & mask[:, :-1]
+    obs, pair = _metaworld_steps(trajectories, "metaworld_frame_stack_error")
     err = (obs[:, 1:, 18:36].float() - obs[:, :-1, 0:18].float()).norm(dim=-1) * pair
-    if pooled:
-        return err.sum() / pair.sum() if bool(pair.any()) else torch.tensor(float("nan"))
-    return err.sum(-1) / pair.sum(-1).clamp_min(1)
+    return _mean_over_steps(err, pair, pooled=pooled)
 
 
 def _consecutive_pairs(trajectories: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """``(obs[t], a[t], obs[t+1])`` of every pair of consecutive valid steps, flattened, and the
-    ``[N, H - 1]`` pair mask they came from."""
-    obs, act = trajectories.get("observation").double(), trajectories.get("action").double()
-    mask = trajectories.get("mask").bool()
-    if obs.shape[-1] != 39:
-        raise ValueError(f"Meta-World hand model: 'observation' has {obs.shape[-1]} dims; "
-                         "Meta-World v3 observations have 39 (two stacked 18-d frames + 3-d goal)")
-    pair = mask[:, 1:] & mask[:, :-1]
+    """``obs[t]``, ``a[t]``, ``obs[t+1]`` (float64, each ``[N, H - 1, .]``) and the ``[N, H - 1]`` mask
+    of the pairs of consecutive valid steps."""
+    obs, pair = _metaworld_steps(trajectories, "Meta-World hand model")
+    obs, act = obs.double(), trajectories.get("action").double()
     return obs[:, :-1], act[:, :-1], obs[:, 1:], pair
 
 
@@ -564,9 +572,7 @@ def metaworld_hand_model_error(trajectories: TensorDictBase, weights: torch.Tens
     o, a, o1, pair = _consecutive_pairs(trajectories)
     pred = _hand_features(o, a) @ weights.to(o)
     err = ((o1[..., :3] - o[..., :3]) - pred).norm(dim=-1) * pair
-    if pooled:
-        return (err.sum() / pair.sum()).float() if bool(pair.any()) else torch.tensor(float("nan"))
-    return (err.sum(-1) / pair.sum(-1).clamp_min(1)).float()
+    return _mean_over_steps(err, pair, pooled=pooled).float()
 
 
 def metaworld_frame_stack_check(max_error: float) -> Callable[[TensorDictBase], torch.Tensor]:
@@ -625,13 +631,11 @@ def metaworld_hand_model_check(weights: torch.Tensor, max_error: float) -> Calla
 def _hand_object_steps(trajectories: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Per transition ``[N, H - 1]``: the object's displacement (``obs[4:7]``), the smaller hand-object
     distance of its two ends (hand: ``obs[0:3]``) and the pair mask."""
-    obs, mask = trajectories.get("observation").double(), trajectories.get("mask").bool()
-    if obs.shape[-1] != 39:
-        raise ValueError(f"Meta-World contact check: 'observation' has {obs.shape[-1]} dims; "
-                         "Meta-World v3 observations have 39 (two stacked 18-d frames + 3-d goal)")
+    obs, pair = _metaworld_steps(trajectories, "Meta-World contact check")
+    obs = obs.double()
     hand, obj = obs[..., 0:3], obs[..., 4:7]
     dist = (hand - obj).norm(dim=-1)
-    return (obj[:, 1:] - obj[:, :-1]).norm(dim=-1), torch.minimum(dist[:, 1:], dist[:, :-1]), mask[:, 1:] & mask[:, :-1]
+    return (obj[:, 1:] - obj[:, :-1]).norm(dim=-1), torch.minimum(dist[:, 1:], dist[:, :-1]), pair
 
 
 def fit_metaworld_contact_reach(trajectories: TensorDictBase, *, quantile: float = 0.99,
@@ -702,3 +706,25 @@ def metaworld_contact_check(reach: float, max_path: float) -> Callable[[TensorDi
         return metaworld_contactless_object_path(trajectories, reach) <= max_path
 
     return check
+
+
+def metaworld_physics_errors(trajectories: TensorDictBase, *, hand_weights: torch.Tensor,
+                             reach: float | None) -> dict[str, torch.Tensor]:
+    """The three Meta-World dynamics proxies of a batch, ``[N]`` each, in metres:
+    ``frame_stack_error``, ``hand_model_error`` and (unless ``reach`` is ``None``)
+    ``contactless_object_path`` (:func:`metaworld_frame_stack_error`,
+    :func:`metaworld_hand_model_error`, :func:`metaworld_contactless_object_path`).
+
+    Example:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> obs, act = torch.zeros(1, 4, 39), torch.full((1, 4, 4), 0.5)
+        >>> td = TensorDict({"observation": obs, "action": act, "mask": torch.ones(1, 4, dtype=torch.bool)}, [1, 4])
+        >>> sorted(metaworld_physics_errors(td, hand_weights=torch.zeros(44, 3), reach=0.1))
+        ['contactless_object_path', 'frame_stack_error', 'hand_model_error']
+    """
+    out = {"frame_stack_error": metaworld_frame_stack_error(trajectories),
+           "hand_model_error": metaworld_hand_model_error(trajectories, hand_weights)}
+    if reach is not None:
+        out["contactless_object_path"] = metaworld_contactless_object_path(trajectories, reach)
+    return out
