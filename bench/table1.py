@@ -344,18 +344,57 @@ def render_flow_table(cells: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+def pooled_success(cells: list[dict[str, Any]], *, confidence: float = 0.95) -> tuple[int, int, float, float] | None:
+    """Successes and episodes of success-rate cells pooled over seeds, with a Wilson interval.
+
+    Args:
+        cells: cell records of one method, task and configuration (one per seed).
+        confidence: level of the interval.
+
+    Returns:
+        ``(successes, episodes, low, high)``, or ``None`` when a cell is not a success rate or does not
+        record its number of episodes (``metrics.eval.num_episodes``). The interval treats the pooled
+        episodes as independent: it is episode noise only, the seed-to-seed spread is the ± s.e.
+
+    Example:
+        >>> cell = {"score_name": "success_rate", "score": 0.0, "metrics": {"eval": {"num_episodes": 50}}}
+        >>> k, n, low, high = pooled_success([cell, cell, cell])
+        >>> (k, n, low, round(high, 3))
+        (0, 150, 0.0, 0.025)
+    """
+    from scipy.stats import binomtest  # scikit-learn's dependency; Wilson's interval, not hand-written
+
+    successes = episodes = 0
+    for cell in cells:
+        num = cell.get("metrics", {}).get("eval", {}).get("num_episodes")
+        if cell.get("score_name") != "success_rate" or not isinstance(num, int) or num <= 0:
+            return None
+        k = round(float(cell["score"]) * num)
+        if abs(k - float(cell["score"]) * num) > 1e-6:
+            raise ValueError(f"cell {cell.get('env')} seed {cell.get('seed')}: success rate {cell['score']} is "
+                             f"not a whole number of successes in {num} episodes")
+        successes, episodes = successes + k, episodes + num
+    interval = binomtest(successes, episodes).proportion_ci(confidence_level=confidence, method="wilson")
+    return successes, episodes, float(interval.low), float(interval.high)
+
+
 def render_comparison(configs: dict[str, Path], *, teacher: str, method: str = "ftb") -> str:
     """One method under several configurations (one results directory each), task by task.
 
     Each cell: mean ± standard error over seeds (population std / sqrt(n)), ``n`` and the per-seed
     scores in seed order, beside the paper's number; what the *best per task* and *one setting for
     every task* questions of issue #5 need, read from the cell JSONs instead of copied by hand.
+    Success rates also get their episodes pooled over seeds, ``k/N ep.``, with a 95 % Wilson
+    interval (:func:`pooled_success`): with 20-50 episodes a seed, whether a gap to the paper is
+    more than episode noise (assembly: 0 of 150 vs the paper's 0.02) is read from the table.
     """
     table: dict[str, dict[str, dict[int, float]]] = {}
+    cells: dict[tuple[str, str], list[dict[str, Any]]] = {}
     for label, results_dir in configs.items():
         for c in load_cells(results_dir):
             if c["method"] == method and c.get("teacher", "return") == teacher:
                 table.setdefault(c["env"], {}).setdefault(label, {})[int(c["seed"])] = float(c["score"])
+                cells.setdefault((c["env"], label), []).append(c)
     lines = [f"**{METHOD_NAMES.get(method, method)}, teacher `{teacher}`**: mean ± s.e. over seeds (n; per seed)",
              "", "| task | " + " | ".join(configs) + " | paper |", "|---|" + "---|" * (len(configs) + 1)]
     for task in sorted(table):
@@ -370,7 +409,10 @@ def render_comparison(configs: dict[str, Path], *, teacher: str, method: str = "
             mean, std = _mean_std(vals)
             labelled = sorted(per_seed) != list(range(len(vals)))  # name the seeds when some are missing
             seeds = " / ".join((f"s{k} " if labelled else "") + _fmt(per_seed[k], big=big) for k in sorted(per_seed))
-            row.append(f"{_fmt(mean, big=big)} ± {_fmt(std / math.sqrt(len(vals)), big=big)} (n={len(vals)}; {seeds})")
+            pooled = pooled_success(cells[(task, label)])
+            pooled = "" if pooled is None else f"; {pooled[0]}/{pooled[1]} ep., 95 % CI {pooled[2]:.2f}–{pooled[3]:.2f}"
+            row.append(f"{_fmt(mean, big=big)} ± {_fmt(std / math.sqrt(len(vals)), big=big)} "
+                       f"(n={len(vals)}; {seeds}{pooled})")
         ptask = paper_task(task)
         paper = PAPER_TABLE1.get(ptask, {}).get(method) if ptask else None
         row.append("—" if paper is None else str(paper))

@@ -250,6 +250,28 @@ def test_table1_compares_configurations_task_by_task(tmp_path):
         table1.main(["--methods", "ftb", "--compare", f"x={tmp_path / 'missing'}"])
 
 
+def test_table1_comparison_pools_episodes_into_a_wilson_interval(tmp_path):
+    table1 = load_script(ROOT / "bench" / "table1.py", "bench_table1")
+    cells = tmp_path / "c"
+    for seed, (score, episodes) in enumerate(((0.0, 50), (0.05, 20), (0.0, 50))):
+        table1.write_cell_json(cells / f"ftb__assembly-v3__success__seed{seed}.json", {
+            "method": "ftb", "env": "assembly-v3", "seed": seed, "teacher": "success", "score": score,
+            "score_name": "success_rate", "metrics": {"eval": {"num_episodes": episodes}}})
+    k, n, low, high = table1.pooled_success(table1.load_cells(cells))
+    assert (k, n) == (1, 120) and 0.0 < low < 1 / 120 < 0.02 < high < 0.05  # the paper's 0.02 is inside
+    row = next(line for line in table1.render_comparison({"x": cells}, teacher="success").splitlines()
+               if line.startswith("| assembly-v3"))
+    assert row.startswith("| assembly-v3 | 0.02 ± 0.01 (n=3; 0.00 / 0.05 / 0.00; 1/120 ep., 95 % CI 0.00–0.05)")
+    # a score that is not a whole number of successes is refused by cell, not pooled into nonsense
+    bad = {"env": "assembly-v3", "seed": 0, "score_name": "success_rate", "score": 0.33,
+           "metrics": {"eval": {"num_episodes": 20}}}
+    with pytest.raises(ValueError, match="assembly-v3 seed 0.*not a whole number"):
+        table1.pooled_success([bad])
+    # without the episode count (or for a return) there is nothing to pool
+    assert table1.pooled_success([{**bad, "metrics": {}}]) is None
+    assert table1.pooled_success([{**bad, "score_name": "normalized_score"}]) is None
+
+
 def test_table1_imports_a_finished_run_into_its_own_section(tmp_path):
     table1 = load_script(ROOT / "bench" / "table1.py", "bench_table1")
     run = tmp_path / "run"
