@@ -14,6 +14,10 @@ labels instead of s_psi, i.e. what a perfect score model could hand it:
 * ``any``: up to ``--k`` successful episodes of any group (cross-env successes included, which come
   from *other* tasks' scripted policies).
 
+``--with-failures`` drops the success condition: every episode of the subset's groups is a candidate
+(up to ``--k`` drawn at random), i.e. BC asked to average the noisy scripted policy itself, which is
+what a task with almost no successes (assembly: 4 in 400, all ``expert``) leaves a ranking to pick.
+
 Evaluation draws a new goal every episode (the recipe's ``eval`` settings), so ``expert`` vs
 ``within`` measures how much goal diversity BC needs, and ``on_task`` vs ``any`` what cross-env
 successes in the set cost. ``--obs-stats dataset`` z-scores the actor's observations with the whole
@@ -53,10 +57,12 @@ SUBSETS = {
 
 
 def select(group: torch.Tensor, success: torch.Tensor, groups: list[str], subset: str, *, k: int,
-           generator: torch.Generator) -> torch.Tensor:
-    """Indices of up to ``k`` successful trajectories whose group is in ``SUBSETS[subset]``."""
+           generator: torch.Generator, with_failures: bool = False) -> torch.Tensor:
+    """Indices of up to ``k`` trajectories whose group is in ``SUBSETS[subset]``: successful ones only,
+    or any of them with ``with_failures``."""
     wanted = torch.tensor([groups.index(g) for g in SUBSETS[subset]])
-    pool = torch.nonzero(success & torch.isin(group, wanted)).squeeze(-1)
+    keep = torch.isin(group, wanted) if with_failures else success & torch.isin(group, wanted)
+    pool = torch.nonzero(keep).squeeze(-1)
     if pool.numel() > k:
         pool = pool[torch.randperm(pool.numel(), generator=generator)[:k]]
     return pool
@@ -74,7 +80,7 @@ def run_cell(task: str, idx: torch.Tensor, seed: int, cfg, data: tuple, *, episo
     """BC (the recipe's settings) on trajectories ``idx`` of the task's dataset, then evaluation."""
     trajs, meta, group, success = data
     if idx.numel() == 0:
-        return {"num_trajectories": 0, "success_rate": None, "note": "no successful trajectory in this subset"}
+        return {"num_trajectories": 0, "success_rate": None, "note": "no trajectory in this subset"}
     chosen = trajs[idx]
     flat = trajectories_to_flat(chosen.select("observation", "action", "mask"))
     # the actor's observation z-score: from the BC set itself (the recipe's) or from the whole dataset
@@ -116,6 +122,8 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=None, help="BC steps (default: the cpu preset's)")
     parser.add_argument("--obs-stats", choices=("subset", "dataset"), default="subset",
                         help="the BC actor's observation mean/std: of the chosen set (the recipe's) or of the dataset")
+    parser.add_argument("--with-failures", action="store_true",
+                        help="candidates: every episode of the subset's groups, not only the successful ones")
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "bc_ceiling.json")
     args = parser.parse_args()
     unknown = set(args.subsets.split(",")) - set(SUBSETS)
@@ -130,7 +138,7 @@ def main() -> None:
     record = {**run_record(config=config), "cells": {}}
     if args.out.is_file():  # resume: keep finished cells of the same command
         old = json.loads(args.out.read_text())
-        same = {"k", "episodes", "steps", "obs_stats"}
+        same = {"k", "episodes", "steps", "obs_stats", "with_failures"}
         if any(old.get("config", {}).get(key, parser.get_default(key)) != config[key] for key in same):
             parser.error(f"{args.out} holds cells of other options ({sorted(same)}): pass another --out")
         record["cells"] = old.get("cells", {})
@@ -145,10 +153,12 @@ def main() -> None:
         for task in args.tasks.split(","):
             for subset in args.subsets.split(","):
                 for seed in (int(s) for s in args.seeds.split(",")):
-                    jobs.append((f"{task}/{subset}/seed{seed}", task, seed,
+                    name = subset + ("+failures" if args.with_failures else "")
+                    jobs.append((f"{task}/{name}/seed{seed}", task, seed,
                                  lambda data, subset=subset, seed=seed: select(
                                      data[2], data[3], list(data[1]["groups"]), subset, k=args.k,
-                                     generator=torch.Generator().manual_seed(seed))))
+                                     generator=torch.Generator().manual_seed(seed),
+                                     with_failures=args.with_failures)))
     datasets: dict = {}
     for key, task, seed, selection in jobs:
         if key in record["cells"]:

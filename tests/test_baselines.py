@@ -1,6 +1,7 @@
 """Tests of torchrl_ftb.baselines, recipes/baselines.py and bench/table1.py (fast, CPU)."""
 from __future__ import annotations
 
+import functools
 import json
 from pathlib import Path
 
@@ -359,3 +360,17 @@ def test_score_model_variants_crop_and_parse():
         starts = cropped.float().argmax(-1)
         assert all(cropped[i, s:s + n].all() for i, (s, n) in enumerate(zip(starts.tolist(), [3, 5, 5])))
     assert trajs["mask"].equal(mask)  # the input is left alone
+
+
+def test_bc_ceiling_selects_successes_or_whole_groups():
+    bc_ceiling = load_script(ROOT / "bench" / "bc_ceiling.py", "bench_bc_ceiling")
+    groups = ["expert", "within", "random", "cross"]
+    group = torch.tensor([0, 0, 1, 1, 2, 3])
+    success = torch.tensor([True, False, False, True, False, True])
+    pick = functools.partial(bc_ceiling.select, group, success, groups, k=10)
+    assert pick("on_task", generator=torch.Generator().manual_seed(0)).tolist() == [0, 3]
+    assert pick("any", generator=torch.Generator().manual_seed(0)).tolist() == [0, 3, 5]
+    assert pick("on_task", generator=torch.Generator().manual_seed(0), with_failures=True).tolist() == [0, 1, 2, 3]
+    few = bc_ceiling.select(group, success, groups, "on_task", k=2, generator=torch.Generator().manual_seed(0),
+                            with_failures=True)
+    assert few.numel() == 2 and set(few.tolist()) <= {0, 1, 2, 3}
