@@ -386,7 +386,7 @@ def render_comparison(configs: dict[str, Path], *, teacher: str, method: str = "
     every task* questions of issue #5 need, read from the cell JSONs instead of copied by hand.
     Success rates also get their episodes pooled over seeds, ``k/N ep.``, with a 95 % Wilson
     interval (:func:`pooled_success`): with 20-50 episodes a seed, whether a gap to the paper is
-    more than episode noise (assembly: 0 of 150 vs the paper's 0.02) is read from the table.
+    more than episode noise (assembly: 0 of 120 vs the paper's 0.02) is read from the table.
     """
     table: dict[str, dict[str, dict[int, float]]] = {}
     cells: dict[tuple[str, str], list[dict[str, Any]]] = {}
@@ -410,9 +410,9 @@ def render_comparison(configs: dict[str, Path], *, teacher: str, method: str = "
             labelled = sorted(per_seed) != list(range(len(vals)))  # name the seeds when some are missing
             seeds = " / ".join((f"s{k} " if labelled else "") + _fmt(per_seed[k], big=big) for k in sorted(per_seed))
             pooled = pooled_success(cells[(task, label)])
-            pooled = "" if pooled is None else f"; {pooled[0]}/{pooled[1]} ep., 95 % CI {pooled[2]:.2f}–{pooled[3]:.2f}"
+            episodes = "" if pooled is None else f"; {pooled[0]}/{pooled[1]} ep., 95 % CI {pooled[2]:.2f}–{pooled[3]:.2f}"
             row.append(f"{_fmt(mean, big=big)} ± {_fmt(std / math.sqrt(len(vals)), big=big)} "
-                       f"(n={len(vals)}; {seeds}{pooled})")
+                       f"(n={len(vals)}; {seeds}{episodes})")
         ptask = paper_task(task)
         paper = PAPER_TABLE1.get(ptask, {}).get(method) if ptask else None
         row.append("—" if paper is None else str(paper))
