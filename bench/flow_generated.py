@@ -44,14 +44,11 @@ from tensordict import TensorDict
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from torchrl_ftb.envs import (fit_metaworld_contact_reach, fit_metaworld_hand_model,  # noqa: E402
-                              metaworld_contactless_object_path, metaworld_hand_model_error,
-                              metaworld_physics_errors, true_reward_fn)
+from torchrl_ftb.envs import (METAWORLD_PHYSICS_PROXIES, fit_metaworld_contact_reach,  # noqa: E402
+                              fit_metaworld_hand_model, metaworld_contactless_object_path,
+                              metaworld_hand_model_error, metaworld_physics_errors, true_reward_fn)
 from torchrl_ftb.flow import masked_true_returns, return_summary  # noqa: E402
 from torchrl_ftb.provenance import run_record, write_json  # noqa: E402
-
-#: the dynamics proxies, in the order of the tables (rows store each as ``<name>_m``)
-PROXIES = ("frame_stack_error", "hand_model_error", "contactless_object_path")
 
 
 def physics_reference(original: TensorDict, *, contact_quantile: float) -> dict:
@@ -69,14 +66,14 @@ def physics_reference(original: TensorDict, *, contact_quantile: float) -> dict:
 
 def generated_rows(ckpt: dict, final: TensorDict, generated: torch.Tensor, ref: dict) -> list[dict]:
     """One row per generated trajectory of the final set: length, flow step, score, recorded true return,
-    and the three physics proxies (``None`` off Meta-World)."""
+    and the three physics proxies as ``<name>_m`` (metres; ``None`` off Meta-World)."""
     if not bool(generated.any()):
         return []
     gen = final[generated]
-    proxies = {f"{key}_m": [None] * gen.batch_size[0] for key in PROXIES}
+    proxies = {f"{key}_m": [None] * gen.batch_size[0] for key in METAWORLD_PHYSICS_PROXIES}
     if ref:
         errors = metaworld_physics_errors(gen, hand_weights=ref["hand_weights"], reach=ref["contact_reach_m"])
-        proxies = {f"{key}_m": errors[key].tolist() for key in PROXIES}
+        proxies = {f"{key}_m": errors[key].tolist() for key in METAWORLD_PHYSICS_PROXIES}
     true = ckpt.get("true_returns")
     return [{"length": int(gen.get("mask")[i].sum()), "flow_step": int(ckpt["source_step"][j]),
              "score": float(ckpt["scores"][j]), "true_return": None if true is None else float(true[j]),
@@ -88,7 +85,8 @@ def proxy_failures(rows: list[dict], *, max_frame_stack_error: float, max_hand_m
                    max_contactless_object_path: float = float("inf")) -> dict[str, torch.Tensor]:
     """Per proxy, ``[n_generated]`` True where a generated trajectory exceeds its limit (metres; rows
     without a check -- non-Meta-World -- pass)."""
-    limits = dict(zip(PROXIES, (max_frame_stack_error, max_hand_model_error, max_contactless_object_path)))
+    limits = dict(zip(METAWORLD_PHYSICS_PROXIES,
+                      (max_frame_stack_error, max_hand_model_error, max_contactless_object_path)))
     return {key: torch.tensor([r.get(f"{key}_m") is not None and r[f"{key}_m"] > limit for r in rows], dtype=torch.bool)
             for key, limit in limits.items()}
 

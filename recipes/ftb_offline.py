@@ -47,6 +47,7 @@ from torchrl_ftb.datasets import dataset_kwargs, make_dataset
 from torchrl_ftb.diffusion import DiffusionSampler, load_diffuser, make_diffuser, run_settings, train_diffuser
 from torchrl_ftb.diffusion.train import CHECKPOINT_NAME
 from torchrl_ftb.envs import (
+    METAWORLD_PHYSICS_PROXIES,
     check_env_matches,
     env_kind,
     fit_metaworld_contact_reach,
@@ -348,7 +349,7 @@ def metaworld_validity(generated: TensorDictBase, data: TensorDictBase) -> dict[
     out = {}
     for name, td in (("generated", generated), ("dataset", data)):
         errors = metaworld_physics_errors(td, hand_weights=hand_w, reach=reach)
-        for proxy in ("frame_stack_error", "hand_model_error", "contactless_object_path"):
+        for proxy in METAWORLD_PHYSICS_PROXIES:
             out[f"{proxy}_{name}"] = float(errors[proxy].mean()) if proxy in errors else float("nan")
     return out
 
@@ -449,7 +450,7 @@ def final_table(metrics: dict) -> list[tuple[str, str]]:
         v = metrics["analysis"]["validity"]
         rows.append(("accepted samples: frame-stack / hand-model error / contactless object path, m (dataset)",
                      " / ".join(f"{_fmt(v[f'{k}_generated'])} ({_fmt(v[f'{k}_dataset'])})"
-                                for k in ("frame_stack_error", "hand_model_error", "contactless_object_path"))))
+                                for k in METAWORLD_PHYSICS_PROXIES)))
     if "top_k_success" in metrics["score_quality"]:
         rows.append(("successes in the top-k (dataset share)",
                      f"{_fmt(metrics['score_quality']['top_k_success'])} "

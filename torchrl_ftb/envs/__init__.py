@@ -23,6 +23,7 @@ from torchrl_ftb.envs.locomotion import (
 from torchrl_ftb.envs.metaworld import (
     METAWORLD_MAX_EPISODE_STEPS,
     METAWORLD_OBSERVATION_LAYOUT,
+    METAWORLD_PHYSICS_PROXIES,
     SuccessInfoReader,
     check_metaworld_task,
     configure_goal,
@@ -49,6 +50,7 @@ __all__ = [
     "LOCOMOTION_ENVS",
     "METAWORLD_MAX_EPISODE_STEPS",
     "METAWORLD_OBSERVATION_LAYOUT",
+    "METAWORLD_PHYSICS_PROXIES",
     "SuccessInfoReader",
     "check_env_matches",
     "check_metaworld_task",

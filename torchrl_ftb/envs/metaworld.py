@@ -42,6 +42,14 @@ __all__ = [
     "metaworld_reward_error",
     "metaworld_frame_stack_error",
     "metaworld_frame_stack_check",
+    "fit_metaworld_hand_model",
+    "metaworld_hand_model_error",
+    "metaworld_hand_model_check",
+    "fit_metaworld_contact_reach",
+    "metaworld_contactless_object_path",
+    "metaworld_contact_check",
+    "METAWORLD_PHYSICS_PROXIES",
+    "metaworld_physics_errors",
 ]
 
 METAWORLD_MAX_EPISODE_STEPS = 500
@@ -708,6 +716,11 @@ def metaworld_contact_check(reach: float, max_path: float) -> Callable[[TensorDi
     return check
 
 
+#: The names of the three dynamics proxies, in report order: the keys of
+#: :func:`metaworld_physics_errors`.
+METAWORLD_PHYSICS_PROXIES = ("frame_stack_error", "hand_model_error", "contactless_object_path")
+
+
 def metaworld_physics_errors(trajectories: TensorDictBase, *, hand_weights: torch.Tensor,
                              reach: float | None) -> dict[str, torch.Tensor]:
     """The three Meta-World dynamics proxies of a batch, ``[N]`` each, in metres:
@@ -723,8 +736,9 @@ def metaworld_physics_errors(trajectories: TensorDictBase, *, hand_weights: torc
         >>> sorted(metaworld_physics_errors(td, hand_weights=torch.zeros(44, 3), reach=0.1))
         ['contactless_object_path', 'frame_stack_error', 'hand_model_error']
     """
-    out = {"frame_stack_error": metaworld_frame_stack_error(trajectories),
-           "hand_model_error": metaworld_hand_model_error(trajectories, hand_weights)}
+    frame, hand, contact = METAWORLD_PHYSICS_PROXIES
+    out = {frame: metaworld_frame_stack_error(trajectories),
+           hand: metaworld_hand_model_error(trajectories, hand_weights)}
     if reach is not None:
-        out["contactless_object_path"] = metaworld_contactless_object_path(trajectories, reach)
+        out[contact] = metaworld_contactless_object_path(trajectories, reach)
     return out
