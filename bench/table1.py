@@ -388,19 +388,17 @@ def render_comparison(configs: dict[str, Path], *, teacher: str, method: str = "
     interval (:func:`pooled_success`): with 20-50 episodes a seed, whether a gap to the paper is
     more than episode noise (assembly: 0 of 120 vs the paper's 0.02) is read from the table.
     """
-    table: dict[str, dict[str, dict[int, float]]] = {}
-    cells: dict[tuple[str, str], list[dict[str, Any]]] = {}
+    table: dict[str, dict[str, dict[int, dict[str, Any]]]] = {}  # task -> label -> seed -> cell
     for label, results_dir in configs.items():
         for c in load_cells(results_dir):
             if c["method"] == method and c.get("teacher", "return") == teacher:
-                table.setdefault(c["env"], {}).setdefault(label, {})[int(c["seed"])] = float(c["score"])
-                cells.setdefault((c["env"], label), []).append(c)
+                table.setdefault(c["env"], {}).setdefault(label, {})[int(c["seed"])] = c
     lines = [f"**{METHOD_NAMES.get(method, method)}, teacher `{teacher}`**: mean ± s.e. over seeds (n; per seed)",
              "", "| task | " + " | ".join(configs) + " | paper |", "|---|" + "---|" * (len(configs) + 1)]
     for task in sorted(table):
         row = [task]
         for label in configs:
-            per_seed = table[task].get(label, {})
+            per_seed = {seed: float(c["score"]) for seed, c in table[task].get(label, {}).items()}
             if not per_seed:
                 row.append("—")
                 continue
@@ -409,7 +407,7 @@ def render_comparison(configs: dict[str, Path], *, teacher: str, method: str = "
             mean, std = _mean_std(vals)
             labelled = sorted(per_seed) != list(range(len(vals)))  # name the seeds when some are missing
             seeds = " / ".join((f"s{k} " if labelled else "") + _fmt(per_seed[k], big=big) for k in sorted(per_seed))
-            pooled = pooled_success(cells[(task, label)])
+            pooled = pooled_success(list(table[task][label].values()))
             episodes = "" if pooled is None else f"; {pooled[0]}/{pooled[1]} ep., 95 % CI {pooled[2]:.2f}–{pooled[3]:.2f}"
             row.append(f"{_fmt(mean, big=big)} ± {_fmt(std / math.sqrt(len(vals)), big=big)} "
                        f"(n={len(vals)}; {seeds}{episodes})")
