@@ -371,6 +371,7 @@ def stage_flow(cfg, run: RunDir, trajs, scores, block_ids, sampler, model, true_
         max_abs_z=float(f.max_abs_z), action_tolerance=float(f.action_tolerance),
         min_length=None if f.min_length is None else int(f.min_length),
         true_reward_fn=true_reward_fn, batch_size=int(f.batch_size), seed=int(cfg.seed),
+        candidates=int(f.get("candidates", 1)),
         true_return_horizon=None if true_reward_fn is None or f.get("true_return_horizon") is None
         else int(f.true_return_horizon),
         ensemble_rule=str(f.get("ensemble_rule", "mean")), logger=logger,

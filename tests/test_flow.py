@@ -121,6 +121,43 @@ def test_flow_with_stand_in_sampler_improves_and_pools():
     assert set(rb.sample().keys()) == {"observation", "action"}
 
 
+def _lottery_sampler():
+    """A stand-in sampler drawing, per sample and uniformly, one of: better but invalid (y-action 3),
+    worse, or better (x-actions +0.2)."""
+
+    def draw(cond):
+        out = cond.select("observation", "action", "mask").clone()
+        m = out["mask"][..., None]
+        kind = torch.randint(0, 3, (cond.batch_size[0],))
+        act = out["action"].clone()
+        shift = torch.tensor([0.4, -0.3, 0.2])[kind]
+        act[..., 0] = (act[..., 0] + shift[:, None]).clamp(-1, 1)
+        act[kind == 0, :, 1] = 3.0
+        out["action"] = act * m
+        return out
+
+    return TensorDictModule(draw, ["condition"], ["sample"])
+
+
+def test_flow_candidates_propose_the_best_valid_sample():
+    data = make_toy_dataset(num_trajectories=200, horizon=H, seed=3)
+    res = {}
+    for n in (1, 8):
+        flow = FlowToBetter(_lottery_sampler(), _sum_ax, top_k=100, threshold=1.0, flow_steps=1, candidates=n,
+                            progress=False, seed=4)
+        res[n] = flow(data)
+        # never an invalid proposal (the better-scoring invalid draws lose to valid ones)
+        assert bool((res[n].generated["action"].abs() <= 1.0).all())
+    # one draw: about a third of the conditions improve; best of 8: all but about (2/3)^8 of them
+    assert 0.2 < res[1].stats[0]["accept_rate"] < 0.5
+    assert res[8].stats[0]["accept_rate"] > 0.85
+    assert 0.55 < res[8].stats[0]["candidate_valid_rate"] < 0.8 and "candidate_valid_rate" not in res[1].stats[0]
+    assert res[8].summary["candidates"] == 8.0
+    assert res[8].summary["score_mean_after"] > res[1].summary["score_mean_after"]
+    with pytest.raises(ValueError, match="candidates must be >= 1"):
+        FlowToBetter(_lottery_sampler(), _sum_ax, top_k=4, flow_steps=1, candidates=0)
+
+
 def test_flow_rejects_invalid_samples_and_stops_early():
     data = make_toy_dataset(num_trajectories=30, horizon=H, seed=2)
     for corrupt in ("big_action", "short"):

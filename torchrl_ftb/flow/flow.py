@@ -291,6 +291,11 @@ class FlowToBetter(nn.Module):
             steps (:func:`masked_true_returns`; ``true_return_filled_*`` statistics), e.g. 500 on
             Meta-World, where a success ends the episode and the plain sum pays a slow success
             more than a fast one. ``None`` (default): the plain sum only.
+        candidates: samples drawn per condition in each flow step; the valid one the score model
+            ranks highest is the step's proposal (best-of-n). 1 (default): Alg. 4's single sample.
+            The score model is the filter either way, so more candidates trade sampling time
+            (n×) for more proposals that clear σ; ``valid_rate`` is then the share of conditions
+            with at least one valid candidate, ``candidate_valid_rate`` the share of candidates.
         batch_size: trajectories per sampler call (memory bound).
         seed: seeds the sampler noise (global RNG inside a fork).
         ensemble_rule: ``"mean"`` (accept on the ensemble-mean score) or ``"all"`` (every
@@ -322,6 +327,7 @@ class FlowToBetter(nn.Module):
         normalizer: Any | None = None,
         true_reward_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
         true_return_horizon: int | None = None,
+        candidates: int = 1,
         batch_size: int = 256,
         seed: int = 0,
         ensemble_rule: str = "mean",
@@ -340,6 +346,8 @@ class FlowToBetter(nn.Module):
             raise ValueError(f"FlowToBetter: flow_steps must be >= 0, got {flow_steps}")
         if min_flow_steps < 0 or (max_flow_steps is not None and max_flow_steps < min_flow_steps):
             raise ValueError(f"FlowToBetter: need 0 <= min_flow_steps <= max_flow_steps, got {min_flow_steps}, {max_flow_steps}")
+        if candidates < 1:
+            raise ValueError(f"FlowToBetter: candidates must be >= 1, got {candidates}")
         if batch_size < 1:
             raise ValueError(f"FlowToBetter: batch_size must be >= 1, got {batch_size}")
         if true_return_horizon is not None and (true_reward_fn is None or true_return_horizon < 1):
@@ -369,6 +377,7 @@ class FlowToBetter(nn.Module):
         # (statistics name, horizon) of each true-return column: the plain sum, and the fill when asked for
         self._true_columns = (("true_return", None),) + (
             () if true_return_horizon is None else (("true_return_filled", int(true_return_horizon)),))
+        self.candidates = int(candidates)
         self.batch_size = int(batch_size)
         self.seed = int(seed)
         self.ensemble_rule = ensemble_rule
@@ -424,6 +433,38 @@ class FlowToBetter(nn.Module):
         out = torch.cat(chunks, 0)
         out.set("mask", out.get("mask").bool())
         return out
+
+    def propose(
+        self, conditions: TensorDictBase, *, normalizer: Any, min_length: int
+    ) -> tuple[TensorDict, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None, dict[str, float]]:
+        """One flow step's proposals for ``conditions`` ``[N, H]``: draws ``candidates`` samples per
+        condition and keeps, per condition, the valid one with the highest (mean) score.
+
+        Returns:
+            ``(samples [N, H], scores [N], filter scores [C, N], valid [N], domain_valid [N] | None,
+            extra statistics)``; a condition with no valid candidate gets an invalid one.
+        """
+        n = conditions.batch_size[0]
+        samples = self.generate(conditions if self.candidates == 1 else torch.cat([conditions] * self.candidates, 0))
+        scores, members = self._scores(samples)
+        valid = trajectory_validity(
+            samples, normalizer=normalizer, max_abs_z=self.max_abs_z, min_length=min_length,
+            action_limit=self.action_limit, action_tolerance=self.action_tolerance,
+        )["valid"].cpu()
+        domain_valid = None
+        if self.validity_fn is not None:
+            domain_valid = torch.as_tensor(self.validity_fn(samples)).bool().cpu()
+            if domain_valid.shape != valid.shape:
+                raise ValueError(f"FlowToBetter: validity_fn returned shape {list(domain_valid.shape)}, "
+                                 f"expected {list(valid.shape)} (one bool per sample)")
+            valid = valid & domain_valid
+        if self.candidates == 1:
+            return samples, scores, members, valid, domain_valid, {}
+        extra = {"candidate_valid_rate": float(valid.double().mean())}
+        rank = torch.where(valid & torch.isfinite(scores), scores, torch.full_like(scores, -math.inf))
+        pick = rank.view(self.candidates, n).argmax(0) * n + torch.arange(n)  # row 0 when none is valid
+        return (samples[pick], scores[pick], members[:, pick], valid[pick],
+                None if domain_valid is None else domain_valid[pick], extra)
 
     def _resolve_normalizer(self, data: TensorDictBase):
         norm = self.normalizer if self.normalizer is not None else getattr(self.sampler, "normalizer", None)
@@ -512,20 +553,9 @@ class FlowToBetter(nn.Module):
             torch.manual_seed(self.seed)
             for step in bar:
                 # the conditions' normalised scores go along for samplers that read them (score_condition)
-                samples = self.generate(with_normalized_scores(current, cur_scores, s_min=s_min, s_max=s_max))
-                new_scores, new_members = self._scores(samples)
-                validity = trajectory_validity(
-                    samples, normalizer=normalizer, max_abs_z=self.max_abs_z, min_length=min_length,
-                    action_limit=self.action_limit, action_tolerance=self.action_tolerance,
-                )
-                valid = validity["valid"].cpu()
-                domain_valid = None
-                if self.validity_fn is not None:
-                    domain_valid = torch.as_tensor(self.validity_fn(samples)).bool().cpu()
-                    if domain_valid.shape != valid.shape:
-                        raise ValueError(f"FlowToBetter: validity_fn returned shape {list(domain_valid.shape)}, "
-                                         f"expected {list(valid.shape)} (one bool per sample)")
-                    valid = valid & domain_valid
+                samples, new_scores, new_members, valid, domain_valid, extra = self.propose(
+                    with_normalized_scores(current, cur_scores, s_min=s_min, s_max=s_max),
+                    normalizer=normalizer, min_length=min_length)
                 better = improves(normalized_scores(new_members, m_min, m_max),
                                   normalized_scores(cur_members, m_min, m_max), self.threshold).all(0)
                 accept = valid & better & torch.isfinite(new_scores)
@@ -558,6 +588,7 @@ class FlowToBetter(nn.Module):
                 }
                 if domain_valid is not None:
                     row["domain_valid_rate"] = float(domain_valid.double().mean())
+                row.update(extra)
                 if cur_true is not None:
                     for j, (name, _) in enumerate(self._true_columns):
                         row.update({f"{name}_mean": float(cur_true[:, j].mean()),
@@ -591,6 +622,7 @@ class FlowToBetter(nn.Module):
             "score_min_dataset": s_min,
             "score_max_dataset": s_max,
             "threshold": self.threshold,
+            "candidates": float(self.candidates),
             "filter_members": float(member_scores.shape[0]),  # 1: the mean score; C: every member
             "min_length": float(min_length),
             "num_generated_accepted": float(generated.batch_size[0]),
