@@ -248,6 +248,21 @@ def test_metaworld_config_is_the_paper_defaults_plus_the_fill_and_a_larger_top_k
     assert a == b
 
 
+def test_readme_main_command_composes_to_the_embedded_default():
+    """The README's main command (its first ``recipes/ftb_offline.py`` line) names a config and overrides that
+    compose to the embedded default: generated button-press, 30 scripted labels, the ``cpu`` preset."""
+    line = next(l for l in (ROOT / "README.md").read_text().splitlines()
+                if l.startswith("bash scripts/setup.sh && .venv/bin/python recipes/ftb_offline.py"))
+    args = line.split("recipes/ftb_offline.py", 1)[1].split()
+    name = "ftb_offline"
+    if args[:1] == ["--config-name"]:
+        name, args = args[1], args[2:]
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+        cfg = compose(config_name=name, overrides=args)
+    assert cfg.env.name == "button-press-v3" and cfg.preset == "cpu" and cfg.labels.num_pairs == 30
+    assert cfg.labels.horizon == cfg.score_model.horizon == 500 and cfg.flow.top_k == 200
+
+
 def test_physical_validity_checks_compose():
     """flow.max_frame_stack_error, flow.max_hand_model_error and flow.max_contactless_object_path: each
     rejects its own kind of broken Meta-World sample, all must pass, and none set means no extra check."""
