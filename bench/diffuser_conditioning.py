@@ -47,7 +47,7 @@ from flow_diagnostics import (  # noqa: E402
 from torchrl_ftb.diffusion import (  # noqa: E402
     get_preset, load_diffuser, make_diffuser, parse_overrides, train_diffuser,
 )
-from torchrl_ftb.envs import true_reward_fn  # noqa: E402
+from torchrl_ftb.envs import observation_layout, true_reward_fn  # noqa: E402
 from torchrl_ftb.preference import (  # noqa: E402
     load_score_model, make_block_pair_buffer, score_trajectories, with_normalized_scores,
 )
@@ -176,6 +176,8 @@ def main() -> None:
         diffuser = load_diffuser(ckpt)
     elif args.preset is not None:
         torch.manual_seed(int(cfg.seed))  # a fresh model's initial weights, as the recipe seeds them
+        if cfg.diffuser.get("observation_structure"):  # as the run's own diffuser (the recipe's rule)
+            overrides = {**observation_layout(name), **overrides}
         diffuser = make_diffuser(args.preset, obs_dim=trajs["observation"].shape[-1],
                                  action_dim=trajs["action"].shape[-1], horizon=trajs.batch_size[1], data=trajs,
                                  **overrides)

@@ -82,7 +82,8 @@ def denoiser_check(diffuser, trajs, *, timesteps=(10, 100, 500, 900, 999), seed:
         for t in timesteps:
             tt = torch.full((x0.shape[0],), int(t))
             noise = torch.randn(x0.shape, generator=g)
-            eps = nets["backbone"](diffuser.process.add_noise(x0, noise, tt), tt, emb, cmask).float()
+            x_t = diffuser.process.add_noise(x0, noise, tt)
+            eps = diffuser.process.to_eps(x_t, nets["backbone"](x_t, tt, emb, cmask).float(), tt)  # eps-MSE either way
             err = (eps - noise).pow(2)
             out[str(t)] = {"mse_data": float((err[..., :-1] * mask[..., None]).sum() / (mask.sum() * diffuser.diffused_dim)),
                            "mse_validity": float(err[..., -1].mean())}

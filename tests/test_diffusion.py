@@ -1,6 +1,8 @@
 """Unit tests of the trajectory diffuser pieces (fast: tiny nets, no real training)."""
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 from tensordict import TensorDict
@@ -158,6 +160,61 @@ def test_samplers_with_exact_denoiser_land_on_data(sampler, steps):
     lengths = d.detect_mask(x[..., -1]).sum(-1)
     assert torch.equal(lengths, data["mask"].sum(-1)[dist.argmin(-1)])
     assert (data["mask"].sum(-1) < 16).any()  # the check covers padded (shorter) trajectories
+
+
+@pytest.mark.parametrize("sampler", ["ddpm", "ddim", "dpm++"])
+def test_sample_prediction_is_the_same_model_seen_through_x0(sampler):
+    """``prediction_type="sample"``: a denoiser that outputs the x0 an eps-denoiser implies must
+    give the eps-process's samples (same noise), clipping included; and bad names are refused."""
+    data = make_toy_dataset(num_trajectories=32, horizon=8, seed=0, noise=0.3)
+    d = make_diffuser("tiny", obs_dim=3, action_dim=2, horizon=8).fit_normalizer(data)
+    x_data = d.model_input(d.raw_data_from_td(data), data["mask"]).reshape(32, -1)
+    abar = d.process.scheduler.alphas_cumprod
+
+    def eps(x, t):
+        a, s = abar[t].sqrt()[:, None], (1 - abar[t]).sqrt()[:, None]
+        xf = x.reshape(len(x), -1)
+        w = torch.softmax(-((xf[:, None] - a[:, :, None] * x_data[None]) ** 2).sum(-1) / (2 * s**2), -1)
+        return ((xf - a * (w @ x_data)) / s).reshape(x.shape)
+
+    def x0(x, t):
+        a = abar[t].view(-1, 1, 1)
+        return (x - (1 - a).sqrt() * eps(x, t)) / a.sqrt()
+
+    x0_process = DiffusionProcess(prediction_type="sample")
+    kw = dict(sampler=sampler, steps=10, x0_bounds=d.x0_bounds())
+    want = d.process.sample(eps, (6, 8, d.transition_dim), generator=torch.Generator().manual_seed(0), **kw)
+    got = x0_process.sample(x0, (6, 8, d.transition_dim), generator=torch.Generator().manual_seed(0), **kw)
+    torch.testing.assert_close(got, want, atol=1e-3, rtol=1e-3)
+    x = torch.randn(5, 8, 3)
+    assert torch.equal(x0_process.training_target(x, x + 1), x)  # regressed on the clean data
+    assert torch.equal(d.process.training_target(x, x + 1), x + 1)  # regressed on the noise
+    with pytest.raises(ValueError, match="prediction_type"):
+        DiffusionProcess(prediction_type="v_prediction")
+
+
+def test_sample_prediction_trains_on_x0_and_survives_save_load(data, tmp_path):
+    d = make_diffuser("tiny", obs_dim=3, action_dim=2, horizon=H, prediction_type="sample").fit_normalizer(data)
+    assert d.process.prediction_type == "sample"
+    batch = _pairs(data, torch.arange(8), torch.arange(8, 16))
+    # a backbone that returns the clean target exactly has zero loss under x0 prediction only
+    target = batch["target"]
+    x0 = d.model_input(d.raw_data_from_td(target), target["mask"].bool())
+    backbone = d.backbone
+    backbone.forward = lambda x_t, t, *args, **kwargs: x0
+    assert float(DiffusionLoss(d)(batch)["loss_diffusion"]) < 1e-10
+    d_eps = _diffuser(data)
+    d_eps.backbone.forward = lambda x_t, t, *args, **kwargs: x0
+    assert float(DiffusionLoss(d_eps)(batch)["loss_diffusion"]) > 0.1
+    del backbone.forward
+    out = train_diffuser(d, lambda: batch, steps=3, lr=1e-2, progress=False)
+    assert all(map(math.isfinite, out["losses"]))
+    d2 = load_diffuser(save_diffuser(d, tmp_path / "d.pt"))
+    assert d2.process.prediction_type == "sample"
+    module = dict(sampler="ddpm", steps=4, seed=3)
+    a = DiffusionSampler(d, **module)(TensorDict({"condition": data[:4]}, batch_size=[4]))["sample"]
+    b = DiffusionSampler(d2, **module)(TensorDict({"condition": data[:4]}, batch_size=[4]))["sample"]
+    assert torch.equal(a["observation"], b["observation"])
 
 
 @pytest.mark.parametrize("sampler,steps", [("ddpm", 25), ("ddim", 20), ("dpm++", 20)])

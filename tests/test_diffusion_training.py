@@ -31,8 +31,9 @@ def _toy_blocks() -> tuple[TensorDict, torch.Tensor, list[torch.Tensor]]:
     return data, returns, [torch.nonzero(block == k).squeeze(-1) for k in range(K)]
 
 
-@pytest.fixture(scope="module")
-def trained():
+@pytest.fixture(scope="module", params=["epsilon", "sample"])
+def trained(request):
+    """The tiny preset trained on adjacent true-return blocks, predicting eps (the paper) or x0."""
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
@@ -46,7 +47,8 @@ def trained():
             return TensorDict({"condition": data[pick(k)], "target": data[pick(k + 1)]}, batch_size=[batch])
 
         torch.manual_seed(0)
-        diffuser = make_diffuser("tiny", obs_dim=3, action_dim=2, horizon=H).fit_normalizer(data)
+        diffuser = make_diffuser("tiny", obs_dim=3, action_dim=2, horizon=H,
+                                 prediction_type=request.param).fit_normalizer(data)
         out = train_diffuser(diffuser, pairs, steps=TRAIN_STEPS, lr=3e-3, grad_clip=1.0, progress=False)
         yield diffuser, data, members, out
     finally:

@@ -32,7 +32,10 @@ __all__ = ["DiffusionLoss"]
 
 
 class DiffusionLoss(LossModule):
-    """Masked epsilon-prediction loss with condition dropout, output ``"loss_diffusion"``.
+    """Masked denoising loss with condition dropout, output ``"loss_diffusion"``.
+
+    The regression target is the noise (epsilon prediction, the paper's Eq. 3) or the clean
+    trajectory, as the diffuser's ``process.prediction_type`` says.
 
     Consumes pair batches from the block pair sampler: a TensorDict ``[B]`` with sub-tds
     ``"condition"`` and ``"target"`` ``[B, H]`` (``observation``, ``action``, ``mask`` and
@@ -113,8 +116,8 @@ class DiffusionLoss(LossModule):
             score = d.condition_score(tensordict.get(self.tensor_keys.condition), name="DiffusionLoss['condition']")
             drop = torch.rand(batch, device=x0.device) < d.cond_drop_prob
             cond_emb, cond_mask = d.encode_condition(d.condition_input(craw, cmask), cmask, score=score, drop=drop)
-        eps = d.backbone(x_t, t, cond_emb, cond_mask)
-        err = (eps.float() - noise).pow(2)
+        out = d.backbone(x_t, t, cond_emb, cond_mask)
+        err = (out.float() - d.process.training_target(x0, noise)).pow(2)
         data_err = (err[..., :-1] * mask[..., None]).sum()
         valid_err = err[..., -1].sum()
         n_data = mask.sum() * d.diffused_dim

@@ -354,7 +354,11 @@ class TrajectoryDiffuser(nn.Module):
     def guided_eps(self, x_t: torch.Tensor, t: torch.Tensor, cond_emb: torch.Tensor | None,
                    cond_mask: torch.Tensor | None, *, guidance: float,
                    networks: nn.ModuleDict | None = None) -> torch.Tensor:
-        """``eps_u + w (eps_c - eps_u)`` with both passes in ONE batched backbone call."""
+        """``eps_u + w (eps_c - eps_u)`` with both passes in ONE batched backbone call.
+
+        The outputs are the backbone's (``eps``, or ``x_0`` with ``process.prediction_type="sample"``:
+        the same guidance, as the two are affine in each other at fixed ``x_t, t``).
+        """
         nets = networks or self.networks
         backbone = nets["backbone"]
         if cond_emb is None or guidance == 1.0:

@@ -28,6 +28,9 @@ Presets differ only in numbers:
   ``score_condition=True`` hands the encoder the condition's normalised score ``ŝ(tau_0)``
   (:class:`~torchrl_ftb.diffusion.TrajectoryEncoder`); conditions then need
   :data:`~torchrl_ftb.preference.NORMALIZED_SCORE_KEY`.
+  ``prediction_type="sample"`` trains the backbone to output the clean ``x_0`` instead of the
+  noise (Janner et al.'s Diffuser, ``predict_epsilon=False``); sampling, clipping and guidance
+  are unchanged (:class:`~torchrl_ftb.diffusion.DiffusionProcess`).
   Why DDPM and not DPM-Solver++/DDIM by default: on the toy task a briefly trained model
   sampled with the deterministic solvers gave clearly worse trajectories (toy, 400 steps:
   block-0 conditions -> mean true return -3.0 with DPM++ 25 / DDIM 25 vs -1.4 with DDPM 50,
@@ -81,6 +84,7 @@ _MODEL_DEFAULTS = dict(
     score_condition=False,
     num_train_timesteps=1000,
     beta_schedule="squaredcos_cap_v2",
+    prediction_type="epsilon",
     cond_drop_prob=0.25,
     ema_decay=0.995,
     clip_margin=0.5,
@@ -259,7 +263,8 @@ def make_diffuser(
     diffuser = TrajectoryDiffuser(
         backbone,
         encoder,
-        DiffusionProcess(num_train_timesteps=cfg["num_train_timesteps"], beta_schedule=cfg["beta_schedule"]),
+        DiffusionProcess(num_train_timesteps=cfg["num_train_timesteps"], beta_schedule=cfg["beta_schedule"],
+                         prediction_type=cfg["prediction_type"]),
         normalizer,
         obs_dim=obs_dim,
         action_dim=action_dim,

@@ -1,4 +1,4 @@
-"""The diffusion process: cosine schedule, T=1000, epsilon prediction, and samplers.
+"""The diffusion process: cosine schedule, T=1000, epsilon (or x0) prediction, and samplers.
 
 Schedules and sampler updates come from ``diffusers`` (well-kept, tested maths) rather than
 being hand-written:
@@ -17,7 +17,9 @@ divide the denoiser's error by ``sqrt(abar_t)`` and, unclipped, samples explode 
 the sampler). Like Janner et al.'s ``clip_denoised`` we clamp the predicted ``x_0`` to given
 per-dimension bounds (the diffuser passes the data's z-range plus a margin) and convert back
 to the equivalent ``eps``; this is done here, once for all three samplers, because diffusers'
-DPM-Solver++ only offers image-style dynamic thresholding (which rescales). Each sampler step calls the
+DPM-Solver++ only offers image-style dynamic thresholding (which rescales). A model that predicts ``x_0``
+(``prediction_type="sample"``, Janner et al.'s ``predict_epsilon=False``) has its output turned into the
+equivalent ``eps`` first, so clipping, guidance and all three samplers are shared. Each sampler step calls the
 denoiser exactly once (classifier-free guidance batches both passes in that one call), so
 ``steps`` is also the number of denoiser calls.
 
@@ -44,7 +46,7 @@ SAMPLERS = ("ddpm", "ddim", "dpm++")
 
 
 class DiffusionProcess:
-    """Forward noising and reverse sampling of an epsilon-prediction diffusion model.
+    """Forward noising and reverse sampling of a diffusion model that predicts ``eps`` or ``x_0``.
 
     Args:
         num_train_timesteps: ``T`` (paper: 1000).
@@ -56,15 +58,24 @@ class DiffusionProcess:
             never recovers from (measured on button-press-v3, cpu preset, DDPM-25, 8 top-return
             conditions of length 500: generated lengths 3-54 with "trailing", 5 of 8 full-length
             with "leading"). Trailing spacing is meant for zero-terminal-SNR *v*-prediction models.
+        prediction_type: what the denoiser outputs and is trained on: ``"epsilon"`` (default; the
+            paper and the authors' code) or ``"sample"`` (the clean ``x_0``; Janner et al.'s Diffuser
+            uses it for its locomotion planners). The loss is the MSE to
+            :meth:`training_target`; samplers see :meth:`to_eps` of the output.
     """
 
+    PREDICTION_TYPES = ("epsilon", "sample")
+
     def __init__(self, *, num_train_timesteps: int = 1000, beta_schedule: str = "squaredcos_cap_v2",
-                 timestep_spacing: str = "leading") -> None:
+                 timestep_spacing: str = "leading", prediction_type: str = "epsilon") -> None:
         if timestep_spacing not in ("leading", "trailing", "linspace"):
             raise ValueError(f"timestep_spacing must be 'leading', 'trailing' or 'linspace', got {timestep_spacing!r}")
+        if prediction_type not in self.PREDICTION_TYPES:
+            raise ValueError(f"prediction_type must be one of {self.PREDICTION_TYPES}, got {prediction_type!r}")
         self.num_train_timesteps = int(num_train_timesteps)
         self.beta_schedule = beta_schedule
         self.timestep_spacing = timestep_spacing
+        self.prediction_type = prediction_type
         self.scheduler = DDPMScheduler(
             num_train_timesteps=self.num_train_timesteps,
             beta_schedule=beta_schedule,
@@ -76,7 +87,7 @@ class DiffusionProcess:
     def config(self) -> dict:
         """JSON-able constructor arguments."""
         return {"num_train_timesteps": self.num_train_timesteps, "beta_schedule": self.beta_schedule,
-                "timestep_spacing": self.timestep_spacing}
+                "timestep_spacing": self.timestep_spacing, "prediction_type": self.prediction_type}
 
     def sample_timesteps(self, batch: int, *, device: torch.device | str | None = None,
                          generator: torch.Generator | None = None) -> torch.Tensor:
@@ -88,6 +99,21 @@ class DiffusionProcess:
     def add_noise(self, x0: torch.Tensor, noise: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
         """``x_t = sqrt(abar_t) x0 + sqrt(1 - abar_t) noise`` (per-sample ``t``)."""
         return self.scheduler.add_noise(x0, noise, t)
+
+    def training_target(self, x0: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
+        """What the denoiser is regressed on: ``noise`` (epsilon prediction) or ``x0`` (sample prediction)."""
+        return noise if self.prediction_type == "epsilon" else x0
+
+    def to_eps(self, x_t: torch.Tensor, output: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        """The ``eps`` a denoiser ``output`` at ``(x_t, t)`` stands for.
+
+        For sample prediction ``eps = (x_t - sqrt(abar_t) x0) / sqrt(1 - abar_t)``, affine in
+        the output, so classifier-free guidance on ``x0`` equals guidance on ``eps``.
+        """
+        if self.prediction_type == "epsilon":
+            return output
+        abar = self.scheduler.alphas_cumprod.to(x_t.device)[t].view(-1, *([1] * (x_t.ndim - 1)))
+        return (x_t - abar.sqrt() * output) / (1 - abar).sqrt()
 
     def make_scheduler(self, sampler: str, steps: int):
         """A fresh diffusers scheduler for ``sampler`` with ``steps`` inference steps set."""
@@ -142,7 +168,8 @@ class DiffusionProcess:
         ``x_init``, ``strength = 1`` ignores it (pure noise, as without ``x_init``).
 
         Args:
-            denoise: ``eps = denoise(x_t [B, ...], t [B])`` (guidance already applied).
+            denoise: ``denoise(x_t [B, ...], t [B])``, the model's output (``eps`` or ``x_0`` by
+                ``prediction_type``; guidance already applied).
             shape: sample shape ``[B, H, D]``.
             sampler: ``"ddpm"``, ``"ddim"`` or ``"dpm++"``.
             steps: number of sampler steps (= denoiser calls).
@@ -176,7 +203,7 @@ class DiffusionProcess:
             x = self.add_noise(x_init.to(x.device, torch.float32), x, t0)  # x: the drawn noise
         for t in tqdm(timesteps, desc=f"sampling ({sampler})", disable=not progress, leave=False):
             t_batch = t.to(x.device).long().expand(x.shape[0])
-            eps = denoise(x, t_batch).float()
+            eps = self.to_eps(x, denoise(x, t_batch).float(), t_batch)
             if x0_bounds is not None:
                 eps = self._clip_eps(x, eps, t_batch, x0_bounds)
             kwargs = {"generator": generator} if sampler == "ddpm" else {}
