@@ -121,6 +121,9 @@ def test_kill_during_diffuser_training_then_resume_end_to_end(tmp_path):
         "runs": {"r": {"env": "toy", "seed": 0, "generated_in_final_set": rows, "physically_invalid_in_final_set": 0,
                        "improvement": imp}}}}).splitlines()
     assert len(table) == 3 and table[2].startswith("| cells | toy | 0 | raw |") and "(any: 0)" in table[2]
+    physics = load_script(ROOT / "bench" / "sample_physics.py", "bench_sample_physics")
+    with pytest.raises(ValueError, match="needs a Meta-World run"):  # clear refusal, before any sampling
+        physics.sample_physics(run_dir, conditions=2, top_k=None, seed=0)
     for ours, recipe_key in (("plain", "true_return"), ("filled_32", "true_return_filled")):
         for stat in ("mean_before", "mean_after", "max_after"):
             assert imp[ours][f"true_return_{stat}"] == pytest.approx(redone["flow"][f"{recipe_key}_{stat}"], abs=1e-4)
