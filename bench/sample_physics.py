@@ -27,11 +27,10 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
 from flow_diagnostics import load_run, sampling_settings  # noqa: E402
+from flow_generated import physics_reference  # noqa: E402
 
 from torchrl_ftb.diffusion import load_diffuser  # noqa: E402
-from torchrl_ftb.envs import (  # noqa: E402
-    env_kind, fit_metaworld_contact_reach, fit_metaworld_hand_model, metaworld_physics_errors,
-)
+from torchrl_ftb.envs import env_kind, metaworld_physics_errors  # noqa: E402
 from torchrl_ftb.provenance import run_record, write_json  # noqa: E402
 
 
@@ -45,8 +44,8 @@ def sample_physics(run: Path, *, conditions: int, top_k: int | None, seed: int,
     blocks = torch.load(run / "checkpoints" / "blocks.pt", weights_only=True)
     k = int(top_k or cfg.flow.top_k)
     top = trajs[blocks["scores"].argsort(descending=True)[:k]]
-    hand_w = fit_metaworld_hand_model(top)
-    reach = fit_metaworld_contact_reach(top, quantile=contact_quantile)
+    ref = physics_reference(top, contact_quantile=contact_quantile)  # the calibration flow_generated uses
+    hand_w, reach = ref["hand_weights"], ref["contact_reach_m"]
     diffuser = load_diffuser(run / "checkpoints" / "diffuser" / "diffuser_last.pt")
     sampler, steps, guidance = sampling_settings(cfg)
     cond = top[:conditions]
@@ -54,14 +53,14 @@ def sample_physics(run: Path, *, conditions: int, top_k: int | None, seed: int,
                                 generator=torch.Generator().manual_seed(seed))
     real = metaworld_physics_errors(top, hand_weights=hand_w, reach=reach)
     gen = metaworld_physics_errors(samples, hand_weights=hand_w, reach=reach)
-    return {"env": str(cfg.env.name), "seed": int(cfg.seed), "top_k": k, "conditions": int(conditions),
+    return {"env": name, "seed": int(cfg.seed), "top_k": k, "conditions": int(conditions),
             "prediction_type": diffuser.process.prediction_type, "diffuser_steps": int(cfg.diffuser.steps or 0),
             "sampler": sampler, "sample_steps": steps, "guidance": guidance,
             "length_mean": {"samples": float(samples["mask"].sum(-1).float().mean()),
                             "conditions": float(cond["mask"].sum(-1).float().mean())},
-            "proxies_m": {name: {"samples_median": float(v.median()), "samples_mean": float(v.mean()),
-                                 "top_k_median": float(real[name].median()), "top_k_max": float(real[name].max())}
-                          for name, v in gen.items()}}
+            "proxies_m": {proxy: {"samples_median": float(v.median()), "samples_mean": float(v.mean()),
+                                  "top_k_median": float(real[proxy].median()), "top_k_max": float(real[proxy].max())}
+                          for proxy, v in gen.items()}}
 
 
 def main() -> None:

@@ -100,6 +100,10 @@ class DiffusionProcess:
         """``x_t = sqrt(abar_t) x0 + sqrt(1 - abar_t) noise`` (per-sample ``t``)."""
         return self.scheduler.add_noise(x0, noise, t)
 
+    def _abar(self, x_t: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        """``abar_t`` per sample, shaped to broadcast against ``x_t``."""
+        return self.scheduler.alphas_cumprod.to(x_t.device)[t].view(-1, *([1] * (x_t.ndim - 1)))
+
     def training_target(self, x0: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
         """What the denoiser is regressed on: ``noise`` (epsilon prediction) or ``x0`` (sample prediction)."""
         return noise if self.prediction_type == "epsilon" else x0
@@ -112,7 +116,7 @@ class DiffusionProcess:
         """
         if self.prediction_type == "epsilon":
             return output
-        abar = self.scheduler.alphas_cumprod.to(x_t.device)[t].view(-1, *([1] * (x_t.ndim - 1)))
+        abar = self._abar(x_t, t)
         return (x_t - abar.sqrt() * output) / (1 - abar).sqrt()
 
     def make_scheduler(self, sampler: str, steps: int):
@@ -139,7 +143,7 @@ class DiffusionProcess:
     def _clip_eps(self, x_t: torch.Tensor, eps: torch.Tensor, t: torch.Tensor,
                   bounds: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
         """``eps`` whose implied ``x_0`` is clamped to ``bounds``."""
-        abar = self.scheduler.alphas_cumprod.to(x_t.device)[t].view(-1, *([1] * (x_t.ndim - 1)))
+        abar = self._abar(x_t, t)
         a, s = abar.sqrt(), (1 - abar).sqrt()
         x0 = ((x_t - s * eps) / a).clamp(bounds[0], bounds[1])
         return (x_t - a * x0) / s
