@@ -54,11 +54,14 @@ from torchrl_ftb.envs import (
     fit_metaworld_hand_model,
     make_env,
     metaworld_contact_check,
+    metaworld_contactless_object_path,
     metaworld_frame_stack_check,
     metaworld_hand_model_check,
+    metaworld_hand_model_error,
     metaworld_physics_errors,
     normalized_score_fn,
     observation_layout,
+    physics_limit,
     true_reward_fn,
 )
 from torchrl_ftb.flow import FlowToBetter
@@ -321,20 +324,45 @@ def stage_diffuser(cfg, run: RunDir, trajs, scores, block_ids, obs_dim, act_dim,
     return diffuser, summary
 
 
-def physical_validity_fn(f, trajs) -> Callable[[TensorDictBase], torch.Tensor] | None:
+def check_physics_limit_specs(f) -> None:
+    """Raise a clear error for a malformed ``flow.max_*`` physics limit (see :func:`physical_validity_fn`)."""
+    for key in ("max_frame_stack_error", "max_hand_model_error", "max_contactless_object_path"):
+        spec = f.get(key)
+        if isinstance(spec, str) and key == "max_frame_stack_error":
+            raise ValueError(f"flow.{key}={spec!r}: give metres; real data's frame-stack error is 0, so a "
+                             f"multiple of it would reject every sample")
+        if spec is not None:
+            physics_limit(spec, torch.ones(1), field=f"flow.{key}")
+
+
+def physical_validity_fn(f, trajs) -> tuple[Callable[[TensorDictBase], torch.Tensor] | None, dict[str, float]]:
     """The flow's optional Meta-World physics checks (``flow.max_frame_stack_error``,
     ``flow.max_hand_model_error``, ``flow.max_contactless_object_path``; the hand model and the
-    hand's reach are fitted on the dataset), all of which must pass."""
-    checks = []
+    hand's reach are fitted on the dataset), all of which must pass, and their limits in metres.
+
+    The hand-model and contact limits may be relative, ``"<f>x"``: ``f`` times the largest value
+    of the proxy over the dataset's trajectories (:func:`torchrl_ftb.envs.physics_limit`). The
+    frame-stack limit is metres only (real data: exactly 0)."""
+    check_physics_limit_specs(f)
+    checks, limits = [], {}
     if f.get("max_frame_stack_error") is not None:
-        checks.append(metaworld_frame_stack_check(float(f.max_frame_stack_error)))
+        limits["max_frame_stack_error"] = physics_limit(f.max_frame_stack_error, torch.zeros(0),
+                                                        field="flow.max_frame_stack_error")
+        checks.append(metaworld_frame_stack_check(limits["max_frame_stack_error"]))
     if f.get("max_hand_model_error") is not None:
-        checks.append(metaworld_hand_model_check(fit_metaworld_hand_model(trajs), float(f.max_hand_model_error)))
+        weights = fit_metaworld_hand_model(trajs)
+        limits["max_hand_model_error"] = physics_limit(
+            f.max_hand_model_error, metaworld_hand_model_error(trajs, weights), field="flow.max_hand_model_error")
+        checks.append(metaworld_hand_model_check(weights, limits["max_hand_model_error"]))
     if f.get("max_contactless_object_path") is not None:
-        checks.append(metaworld_contact_check(fit_metaworld_contact_reach(trajs), float(f.max_contactless_object_path)))
+        reach = fit_metaworld_contact_reach(trajs)
+        limits["max_contactless_object_path"] = physics_limit(
+            f.max_contactless_object_path, metaworld_contactless_object_path(trajs, reach),
+            field="flow.max_contactless_object_path")
+        checks.append(metaworld_contact_check(reach, limits["max_contactless_object_path"]))
     if not checks:
-        return None
-    return lambda samples: torch.stack([check(samples) for check in checks]).all(0)
+        return None, limits
+    return (lambda samples: torch.stack([check(samples) for check in checks]).all(0)), limits
 
 
 def metaworld_validity(generated: TensorDictBase, data: TensorDictBase) -> dict[str, float]:
@@ -363,6 +391,7 @@ def stage_flow(cfg, run: RunDir, trajs, scores, block_ids, sampler, model, true_
                 "filled_true_returns", "original_filled_true_returns")
         return {**out, **{k: ckpt.get(k) for k in keys}}
     f = cfg.flow
+    validity_fn, limits = physical_validity_fn(f, trajs)
     flow = FlowToBetter(
         sampler, model, top_k=int(f.top_k), threshold=float(f.threshold), num_blocks=int(cfg.blocks.num_blocks),
         flow_steps=None if f.flow_steps is None else int(f.flow_steps),
@@ -375,10 +404,11 @@ def stage_flow(cfg, run: RunDir, trajs, scores, block_ids, sampler, model, true_
         true_return_horizon=None if true_reward_fn is None or f.get("true_return_horizon") is None
         else int(f.true_return_horizon),
         ensemble_rule=str(f.get("ensemble_rule", "mean")), logger=logger,
-        validity_fn=physical_validity_fn(f, trajs),
+        validity_fn=validity_fn,
         progress=bool(cfg.progress),
     )
     res = flow(trajs, scores=scores, block_ids=block_ids)
+    res.summary.update({f"{k}_m": v for k, v in limits.items()})  # the physics limits the flow applied
     ckpt = {"kind": "torchrl_ftb.flow", "trajectories": _td_to_ckpt(res.trajectories),
             "original": _td_to_ckpt(res.original), "generated": _td_to_ckpt(res.generated),
             "scores": res.scores, "original_scores": res.original_scores, "source_step": res.source_step,
@@ -499,6 +529,7 @@ def run(cfg: DictConfig) -> dict:
     query = dict(cfg.labels.get("query") or {})
     if query.get("strategy", "random") not in QUERY_STRATEGIES:
         raise ValueError(f"labels.query.strategy={query.get('strategy')!r}: choose one of {list(QUERY_STRATEGIES)}")
+    check_physics_limit_specs(cfg.flow)  # a malformed limit fails now, not after the diffuser's training
     for key, what in (("max_frame_stack_error", "stacked previous frame"), ("max_hand_model_error", "mocap hand"),
                       ("max_contactless_object_path", "hand-object contact")):
         if cfg.flow.get(key) is not None and kind != "metaworld":

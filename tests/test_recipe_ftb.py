@@ -15,6 +15,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 from tensordict import TensorDict
 
+from torchrl_ftb.envs import fit_metaworld_contact_reach, metaworld_contactless_object_path
 from torchrl_ftb.testing import load_script
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -174,6 +175,8 @@ def test_bad_config_is_a_clear_error(tmp_path):
         recipe.run(_cfg(tmp_path / "f", "flow.max_hand_model_error=0.01"))
     with pytest.raises(ValueError, match="max_contactless_object_path is a Meta-World check"):
         recipe.run(_cfg(tmp_path / "f", "flow.max_contactless_object_path=0.1"))
+    with pytest.raises(ValueError, match="flow.max_hand_model_error='tight'"):
+        recipe.run(_cfg(tmp_path / "f", "flow.max_hand_model_error=tight"))
     assert not (tmp_path / "f").exists()  # refused before anything is written
     with pytest.raises(ValueError, match="score_model.horizon is the stop-rule fill"):
         recipe.run(_cfg(tmp_path / "h", "env.name=hopper", "score_model.horizon=1000"))
@@ -286,12 +289,24 @@ def test_physical_validity_checks_compose():
     samples["observation"][3, 1:, 22] = samples["observation"][3, :-1, 4]
     cfg = lambda stack, hand, contact: OmegaConf.create(  # noqa: E731
         {"max_frame_stack_error": stack, "max_hand_model_error": hand, "max_contactless_object_path": contact})
-    assert recipe.physical_validity_fn(cfg(None, None, None), data) is None
-    assert recipe.physical_validity_fn(cfg(0.02, None, None), data)(samples).tolist() == [True, False, True, True]
-    hand = recipe.physical_validity_fn(cfg(None, 0.005, None), data)(samples).tolist()
+    check = lambda *limits: recipe.physical_validity_fn(cfg(*limits), data)[0](samples).tolist()  # noqa: E731
+    assert recipe.physical_validity_fn(cfg(None, None, None), data) == (None, {})
+    assert check(0.02, None, None) == [True, False, True, True]
+    hand = check(None, 0.005, None)
     assert hand[0] and hand[1] and not hand[2]
-    assert recipe.physical_validity_fn(cfg(None, None, 0.01), data)(samples).tolist() == [True, True, True, False]
-    assert recipe.physical_validity_fn(cfg(0.02, 0.005, 0.01), data)(samples).tolist() == [True, False, False, False]
+    assert check(None, None, 0.01) == [True, True, True, False]
+    assert check(0.02, 0.005, 0.01) == [True, False, False, False]
+    # relative limits: a multiple of the proxy's largest value on the dataset's own trajectories
+    fn, limits = recipe.physical_validity_fn(cfg(0.02, "1x", "2x"), data)
+    assert limits["max_frame_stack_error"] == 0.02
+    assert limits["max_hand_model_error"] < 1e-6  # the mocap-like data meets its linear hand model exactly
+    real_path = metaworld_contactless_object_path(data, fit_metaworld_contact_reach(data))
+    assert limits["max_contactless_object_path"] == pytest.approx(2 * float(real_path.max()))
+    assert fn(samples).tolist() == [True, False, False, False]
+    with pytest.raises(ValueError, match="max_frame_stack_error='2x'.*frame-stack error is 0"):
+        recipe.physical_validity_fn(cfg("2x", None, None), data)
+    with pytest.raises(ValueError, match="max_hand_model_error='loose'.*'<factor>x'"):
+        recipe.physical_validity_fn(cfg(None, "loose", None), data)
     # the recipe's validity analysis: the same proxies' means over the accepted samples, the dataset beside them
     v = recipe.metaworld_validity(samples, data)
     assert v["frame_stack_error_dataset"] == 0 and v["frame_stack_error_generated"] > 0

@@ -41,6 +41,7 @@ from torchrl_ftb.envs.metaworld import (
     metaworld_reward_error,
     metaworld_tasks,
     metaworld_true_reward,
+    physics_limit,
     scripted_policy,
 )
 
@@ -78,6 +79,7 @@ __all__ = [
     "normalized_score_fn",
     "observation_layout",
     "oracle_step",
+    "physics_limit",
     "scripted_policy",
     "true_reward_fn",
 ]

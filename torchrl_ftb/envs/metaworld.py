@@ -18,6 +18,7 @@ Example:
 from __future__ import annotations
 
 import functools
+import re
 import warnings
 from typing import Any, Callable
 
@@ -50,6 +51,7 @@ __all__ = [
     "metaworld_contact_check",
     "METAWORLD_PHYSICS_PROXIES",
     "metaworld_physics_errors",
+    "physics_limit",
 ]
 
 METAWORLD_MAX_EPISODE_STEPS = 500
@@ -634,6 +636,43 @@ def metaworld_hand_model_check(weights: torch.Tensor, max_error: float) -> Calla
         return metaworld_hand_model_error(trajectories, weights) <= max_error
 
     return check
+
+
+def physics_limit(spec: float | str, real: torch.Tensor, *, field: str) -> float:
+    """A physics-check limit in metres, absolute or relative to real data.
+
+    A number is the limit itself. A string ``"<f>x"`` (e.g. ``"1.5x"``) is ``f`` times the
+    largest value the proxy takes on ``real``, the dataset's own trajectories: ``"1x"`` accepts
+    no sample that is further off than the worst real trajectory. A relative limit follows the
+    task and the proxy's fit (real hand-model errors are 1.8-2.4 mm by task, BENCHMARKS #5),
+    where an absolute one tuned on one task may be loose on another.
+
+    Args:
+        spec: metres (``>= 0``) or ``"<f>x"`` with ``f >= 0``.
+        real: ``[N]`` the proxy on real trajectories (e.g. :func:`metaworld_hand_model_error`
+            of the dataset); read only for a relative ``spec``.
+        field: the config field, named in errors.
+
+    Example:
+        >>> import torch
+        >>> physics_limit(0.01, torch.tensor([0.001, 0.002]), field="max_error")
+        0.01
+        >>> round(physics_limit("1.5x", torch.tensor([0.001, 0.002]), field="max_error"), 6)
+        0.003
+    """
+    relative = re.fullmatch(r"\s*([0-9]*\.?[0-9]+)\s*x\s*", spec) if isinstance(spec, str) else None
+    if relative is not None:
+        if real.numel() == 0 or not bool(torch.isfinite(real).all()):
+            raise ValueError(f"{field}={spec!r}: the dataset gives no finite reference value to scale")
+        return float(relative.group(1)) * float(real.max())
+    try:
+        limit = float(spec)
+    except (TypeError, ValueError):
+        raise ValueError(f"{field}={spec!r}: give metres (a number) or a multiple of the dataset's largest "
+                         f"value as '<factor>x', e.g. '1.5x'") from None
+    if not limit >= 0:
+        raise ValueError(f"{field}={spec!r}: a limit must be >= 0 metres")
+    return limit
 
 
 def _hand_object_steps(trajectories: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
