@@ -109,3 +109,28 @@ def test_make_dataset_cli_prints_group_stats(tiny_dataset, capsys):
                       "--max-steps", "150", "--out", str(cache), "--no-progress"])
     out = capsys.readouterr().out
     assert set(stats) == {*GROUPS, "all"} and "expert" in out and stats["expert"]["success_rate"] == 1.0
+
+
+@pytest.mark.integration
+def test_expert_replay_keeps_each_episodes_goal_and_start(tiny_dataset):
+    """generate_metaworld_episodes(expert=True) (bench/expert_headroom.py): every episode's own goal and
+    start, acted on by the task's scripted expert; on the noiseless expert group it is the recorded episode."""
+    from torchrl_ftb.datasets.metaworld import generate_metaworld_episodes
+
+    td, meta, _ = tiny_dataset
+    per = meta["per_trajectory"]
+    jobs = list(zip(per["group"].tolist(), per["episode"].tolist()))
+    eps = generate_metaworld_episodes("button-press-v3", jobs, seed=0, noise=0.0, max_steps=150, expert=True)
+    first = torch.stack([torch.as_tensor(ep["observation"][0], dtype=torch.float32) for ep in eps])
+    torch.testing.assert_close(first, td["observation"][:, 0])  # same goals and starts
+    assert all(ep["policy_task"] == eps[0]["policy_task"] >= 0 for ep in eps)  # the task's expert everywhere
+    assert all(bool(ep["success"].any()) for ep in eps)  # it solves the random and cross groups' goals too
+    n = int(td["mask"][0].sum())
+    assert len(eps[0]["reward"]) == n  # the expert group's episode, replayed exactly
+    torch.testing.assert_close(torch.as_tensor(eps[0]["reward"], dtype=torch.float32), td["next", "reward"][0, :n, 0])
+    assert not any(bool(td["next", "success"][i].any()) for i in (2,))  # the recorded random episode fails
+    bench = load_script(Path(__file__).resolve().parents[1] / "bench" / "expert_headroom.py", "bench_expert_headroom")
+    mask = torch.tensor([[True, True, False], [True, True, True]])
+    plain, filled = bench.returns(torch.tensor([[1.0, 2.0, 9.0], [1.0, 1.0, 1.0]]), mask, horizon=5)
+    assert plain.tolist() == [3.0, 3.0] and filled.tolist() == [9.0, 5.0]  # the last reward, repeated to 5 steps
+    assert bench.match_rows(td["observation"][[2, 0]], td["observation"]).tolist() == [2, 0]

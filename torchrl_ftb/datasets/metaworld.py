@@ -79,8 +79,11 @@ def _episode_rng(seed: int, group: int, episode: int) -> np.random.Generator:
 
 
 def _run_episode(env, task: str, group: int, rng: np.random.Generator, *, noise: float,
-                 max_steps: int, policies: dict) -> dict:
-    """One episode of ``group`` (see module docstring); returns numpy arrays per step."""
+                 max_steps: int, policies: dict, expert: bool = False) -> dict:
+    """One episode of ``group`` (see module docstring); returns numpy arrays per step.
+
+    ``expert=True`` replays the episode's goal and start with the task's own scripted policy
+    instead of the group's (``bench/expert_headroom.py``: what the expert reaches from there)."""
     name = GROUPS[group]
     tasks = metaworld_tasks()
     policy_task = -1
@@ -91,6 +94,8 @@ def _run_episode(env, task: str, group: int, rng: np.random.Generator, *, noise:
         policy_task = int(others[rng.integers(len(others))])
     # expert: the fixed goal of `seed`; others: a goal drawn from this episode's generator
     configure_goal(env, random_goal=name != "expert", seed=int(rng.integers(2**63)))
+    if expert:  # after the group's draws, so the goal and start are the episode's own
+        policy_task = tasks.index(task)
     u = env.unwrapped
     if policy_task >= 0 and tasks[policy_task] not in policies:
         policies[tasks[policy_task]] = scripted_policy(tasks[policy_task])
@@ -121,18 +126,20 @@ def _run_episode(env, task: str, group: int, rng: np.random.Generator, *, noise:
 
 
 def generate_metaworld_episodes(task: str, jobs: list[tuple[int, int]], *, seed: int, noise: float,
-                                max_steps: int, on_episode=None) -> list[dict]:
+                                max_steps: int, on_episode=None, expert: bool = False) -> list[dict]:
     """Generate the episodes ``jobs = [(group, episode), ...]`` (a worker's share).
 
     Deterministic per ``(seed, group, episode)``; used in-process or in worker processes.
-    ``on_episode()`` (optional) is called after each episode (progress bar).
+    ``on_episode()`` (optional) is called after each episode (progress bar). ``expert=True``:
+    every episode's goal and start as generated, acted on by the task's scripted policy
+    (with ``noise``) whatever its group.
     """
     env = make_metaworld_gym_env(task, seed=seed, max_episode_steps=max_steps)
     policies: dict = {}
     out = []
     for group, episode in jobs:
         ep = _run_episode(env, task, group, _episode_rng(seed, group, episode), noise=noise,
-                          max_steps=max_steps, policies=policies)
+                          max_steps=max_steps, policies=policies, expert=expert)
         ep["episode"] = episode
         out.append(ep)
         if on_episode is not None:
