@@ -112,7 +112,7 @@ def headroom(run: Path, *, noise: float, horizon: int, progress: bool) -> dict:
     flow_ckpt = run / "checkpoints" / "flow.pt"
     if flow_ckpt.exists():
         ckpt = torch.load(flow_ckpt, map_location="cpu", weights_only=True)
-        rows = match_rows(ckpt["original"]["observation"].float(), td.get("observation"))
+        rows = match_rows(ckpt["original"]["data"]["observation"].float(), td.get("observation"))
         top = {}
         for ret, (d, e) in (("plain", (data_plain, exp_plain)), ("filled", (data_filled, exp_filled))):
             d, e = d[rows], e[rows]
