@@ -6,11 +6,11 @@ so the question is how far above the data a physically possible trajectory goes.
 a run's dataset this replays the same goal and start (the generator's ``SeedSequence([seed, group,
 episode])``, checked against the recorded first observation) with the task's scripted expert,
 noiseless (``--noise 0``) unless told otherwise, and compares its true return with the recorded one,
-under the plain sum and the stop-rule fill to ``--horizon`` steps (:func:`torchrl_ftb.data.trajectories.
-stop_rule_fill`, the recipe's ``flow.true_return_horizon``). Both returns are the simulator's own
-rewards (no oracle approximation). With the run's ``checkpoints/flow.pt`` it also reports the original
-top-k: the dataset's best trajectory there against the expert's best on the same goals (the headroom
-of the max), and the mean headroom.
+under the plain sum and the stop-rule fill to ``--horizon`` steps (the teachers' definition,
+:func:`torchrl_ftb.data.labels.true_return`; the recipe's ``flow.true_return_horizon``). Both returns
+are the simulator's own rewards (no oracle approximation). With the run's ``checkpoints/flow.pt`` it
+also reports the original top-k: the dataset's best trajectory there against the expert's best on the
+same goals (the headroom of the max), and the mean headroom.
 
 The scripted expert is a strong controller, not an optimal one, so its returns are a reference, not
 a bound. JSON to ``--out`` (command, config, commit, machine).
@@ -27,29 +27,30 @@ from pathlib import Path
 
 import torch
 from omegaconf import OmegaConf
+from tensordict import TensorDict
 from tqdm.auto import tqdm
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from torchrl_ftb.data.trajectories import stop_rule_fill  # noqa: E402
+from torchrl_ftb.data.labels import true_return  # noqa: E402
 from torchrl_ftb.datasets import dataset_kwargs, make_dataset  # noqa: E402
 from torchrl_ftb.datasets.metaworld import GROUPS, generate_metaworld_episodes  # noqa: E402
 from torchrl_ftb.provenance import run_record, write_json  # noqa: E402
 
 
-def returns(reward: torch.Tensor, mask: torch.Tensor, *, horizon: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(plain, filled)`` float64 ``[N]`` returns of ``reward [N, H]`` over the valid steps ``mask``."""
-    reward = reward.double() * mask
-    last, weight = stop_rule_fill(mask, horizon=horizon)
-    plain = reward.sum(-1)
-    return plain, plain + weight * reward.gather(-1, last[:, None])[:, 0]
+def returns(trajs: TensorDict, *, horizon: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(plain, filled)`` ``[N]`` true returns of ``trajs`` (``mask``, ``("next", "reward")``,
+    ``("next", "terminated")``): :func:`torchrl_ftb.data.labels.true_return`, the teachers' definition,
+    without and with the stop-rule fill to ``horizon`` steps."""
+    return true_return(trajs).double(), true_return(trajs, horizon=horizon).double()
 
 
 def replay_expert(task: str, per: dict, *, seed: int, noise: float, max_steps: int,
-                  progress: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The task's scripted expert on every episode's goal and start: ``(reward [N, max_steps], mask,
-    success [N], first_observation [N, 39])``."""
+                  progress: bool) -> tuple[TensorDict, torch.Tensor, torch.Tensor]:
+    """The task's scripted expert on every episode's goal and start: ``(trajectories [N, max_steps]``
+    (``mask``, ``("next", "reward")``, ``("next", "terminated")``: never, a success streak truncates),
+    ``success [N], first_observation [N, 39])``."""
     jobs = list(zip(per["group"].tolist(), per["episode"].tolist()))
     bar = tqdm(total=len(jobs), desc=f"{task} expert replays", disable=not progress)
     eps = generate_metaworld_episodes(task, jobs, seed=seed, noise=noise, max_steps=max_steps,
@@ -62,7 +63,10 @@ def replay_expert(task: str, per: dict, *, seed: int, noise: float, max_steps: i
         reward[i, :n], mask[i, :n] = torch.as_tensor(ep["reward"], dtype=torch.float64), True
     success = torch.tensor([bool(ep["success"].any()) for ep in eps])
     first = torch.stack([torch.as_tensor(ep["observation"][0], dtype=torch.float32) for ep in eps])
-    return reward, mask, success, first
+    trajs = TensorDict({"mask": mask, "next": {"reward": reward[..., None],
+                                               "terminated": torch.zeros_like(mask)[..., None]}},
+                       batch_size=mask.shape)
+    return trajs, success, first
 
 
 def match_rows(original: torch.Tensor, data: torch.Tensor) -> torch.Tensor:
@@ -87,15 +91,16 @@ def headroom(run: Path, *, noise: float, horizon: int, progress: bool) -> dict:
         raise ValueError(f"{run}: {name} is not a generated Meta-World dataset")
     per = meta["per_trajectory"]
     mask = td.get("mask")
-    data_plain, data_filled = returns(td.get(("next", "reward")).squeeze(-1), mask, horizon=horizon)
+    data_plain, data_filled = returns(td, horizon=horizon)
     data_success = td.get(("next", "success")).squeeze(-1).any(-1)
-    reward, emask, esuccess, first = replay_expert(name, per, seed=int(meta["seed"]), noise=noise,
-                                                   max_steps=int(meta["max_steps"]), progress=progress)
+    expert, esuccess, first = replay_expert(name, per, seed=int(meta["seed"]), noise=noise,
+                                            max_steps=int(meta["max_steps"]), progress=progress)
     start_error = float((first - td.get("observation")[:, 0]).abs().max())
     if start_error > 1e-4:
         raise ValueError(f"{run}: the replayed starts differ from the recorded ones by {start_error:.2g} "
                          f"(dataset generator changed?)")
-    exp_plain, exp_filled = returns(reward, emask, horizon=horizon)
+    exp_plain, exp_filled = returns(expert, horizon=horizon)
+    emask = expert.get("mask")
     out = {"env": name, "seed": int(cfg.seed), "dataset": meta["path"], "start_max_abs_error": start_error,
            "groups": {}}
     for g, group in enumerate(GROUPS):

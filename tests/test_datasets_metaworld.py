@@ -131,6 +131,9 @@ def test_expert_replay_keeps_each_episodes_goal_and_start(tiny_dataset):
     assert not any(bool(td["next", "success"][i].any()) for i in (2,))  # the recorded random episode fails
     bench = load_script(Path(__file__).resolve().parents[1] / "bench" / "expert_headroom.py", "bench_expert_headroom")
     mask = torch.tensor([[True, True, False], [True, True, True]])
-    plain, filled = bench.returns(torch.tensor([[1.0, 2.0, 9.0], [1.0, 1.0, 1.0]]), mask, horizon=5)
+    reward = torch.tensor([[1.0, 2.0, 9.0], [1.0, 1.0, 1.0]])[..., None]
+    never = torch.zeros_like(reward, dtype=torch.bool)
+    short = TensorDict({"mask": mask, "next": {"reward": reward, "terminated": never}}, batch_size=[2, 3])
+    plain, filled = bench.returns(short, horizon=5)
     assert plain.tolist() == [3.0, 3.0] and filled.tolist() == [9.0, 5.0]  # the last reward, repeated to 5 steps
     assert bench.match_rows(td["observation"][[2, 0]], td["observation"]).tolist() == [2, 0]
