@@ -19,7 +19,9 @@ machine).
 With ``--horizon H`` it also re-scores the original top-k and the final set with the
 ground-truth oracle (:func:`torchrl_ftb.flow.masked_true_returns`) under two return definitions,
 the plain sum and the stop-rule fill to ``H`` steps (a success ends a Meta-World episode, so
-the plain sum pays a slow success more than a fast one), and the same again with the final
+the plain sum pays a slow success more than a fast one) -- on Meta-World also the fill after cutting
+each trajectory where the data's stop rule (25 consecutive successes) would have ended it, since
+generated trajectories are not cut by it -- and the same again with the final
 set's generated trajectories that fail any of the three checks replaced by the originals they
 displaced: the improvement target (issue #5) on runs made before the recipe reported the fill
 (``flow.true_return_horizon``).
@@ -44,9 +46,13 @@ from tensordict import TensorDict
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from torchrl_ftb.envs import (METAWORLD_PHYSICS_PROXIES, fit_metaworld_contact_reach,  # noqa: E402
+from torchrl_ftb.data import success_streak_length  # noqa: E402
+from torchrl_ftb.data.labels import true_return  # noqa: E402
+from torchrl_ftb.datasets.metaworld import SUCCESS_STREAK  # noqa: E402
+from torchrl_ftb.envs import (METAWORLD_PHYSICS_PROXIES, env_kind, fit_metaworld_contact_reach,  # noqa: E402
                               fit_metaworld_hand_model, metaworld_contactless_object_path,
-                              metaworld_hand_model_error, metaworld_physics_errors, true_reward_fn)
+                              metaworld_hand_model_error, metaworld_physics_errors, metaworld_true_reward,
+                              true_reward_fn)
 from torchrl_ftb.flow import masked_true_returns, return_summary  # noqa: E402
 from torchrl_ftb.provenance import run_record, write_json  # noqa: E402
 
@@ -96,14 +102,43 @@ def physically_invalid(rows: list[dict], **limits: float) -> torch.Tensor:
     return torch.stack(list(proxy_failures(rows, **limits).values())).any(0)
 
 
+def metaworld_returns(task: str, trajs: TensorDict, *, horizon: int) -> torch.Tensor:
+    """``float64 [N, 3]`` oracle true returns of Meta-World trajectories: plain, with the stop-rule fill to
+    ``horizon`` steps, and the same fill after cutting each trajectory where our episodes' stop rule
+    (``SUCCESS_STREAK`` consecutive successes, :func:`~torchrl_ftb.data.success_streak_length`) would have
+    ended it -- the data were cut there when recorded, generated trajectories were not. One simulator pass
+    per trajectory (:func:`~torchrl_ftb.envs.metaworld_true_reward` gives reward and success); the sums are
+    :func:`~torchrl_ftb.data.labels.true_return`'s."""
+    mask = trajs.get("mask")
+    reward = torch.zeros(mask.shape, dtype=torch.float64)
+    success = torch.zeros(mask.shape, dtype=torch.bool)
+    for i, n in enumerate(mask.sum(-1).tolist()):
+        if n:
+            r, s = metaworld_true_reward(task, trajs.get("observation")[i:i + 1, :n], trajs.get("action")[i:i + 1, :n])
+            reward[i, :n], success[i, :n] = r.reshape(-1).double(), s.reshape(-1).bool()
+    cut = torch.arange(mask.shape[-1]) < success_streak_length(success, mask, streak=SUCCESS_STREAK)[:, None]
+
+    def scored(m: torch.Tensor) -> TensorDict:
+        return TensorDict({"mask": m, "next": {"reward": (reward * m)[..., None],
+                                               "terminated": torch.zeros_like(m)[..., None]}}, batch_size=m.shape)
+    full, stopped = scored(mask), scored(mask & cut)
+    return torch.stack([true_return(full), true_return(full, horizon=horizon),
+                        true_return(stopped, horizon=horizon)], -1).double()
+
+
 def oracle_improvement(task: str, original: TensorDict, final: TensorDict, generated: torch.Tensor,
                        invalid: torch.Tensor, *, horizon: int) -> dict[str, dict[str, float]]:
     """Oracle mean/max true return, original top-k vs final set: plain, filled, and both on the final
     set with the physically invalid generated trajectories (``invalid``, one flag per generated one)
     swapped back for the best originals it left out."""
-    fn = true_reward_fn(task)
-    before = masked_true_returns(original, fn, horizons=(None, horizon))  # [k, 2]: plain, filled
-    after = masked_true_returns(final, fn, horizons=(None, horizon))
+    if env_kind(task) == "metaworld":
+        before, after = metaworld_returns(task, original, horizon=horizon), metaworld_returns(task, final, horizon=horizon)
+        names = ("plain", f"filled_{horizon}", f"filled_{horizon}_stop_rule")
+    else:
+        fn = true_reward_fn(task)
+        before = masked_true_returns(original, fn, horizons=(None, horizon))  # [k, 2]: plain, filled
+        after = masked_true_returns(final, fn, horizons=(None, horizon))
+        names = ("plain", f"filled_{horizon}")
     bad = torch.zeros(final.batch_size[0], dtype=torch.bool)
     bad[generated.nonzero().squeeze(-1)] = invalid
     # the final set holds the best-scored originals (it is the top-k of the pool), so those it left out
@@ -111,7 +146,7 @@ def oracle_improvement(task: str, original: TensorDict, final: TensorDict, gener
     left_out = before[final.batch_size[0] - int(generated.sum()):]
     checked = torch.cat([after[~bad], left_out[: int(bad.sum())]], 0)
     out = {}
-    for j, name in enumerate(("plain", f"filled_{horizon}")):
+    for j, name in enumerate(names):
         for suffix, final_ret in (("", after), ("_physically_checked", checked)):
             out[name + suffix] = return_summary(before[:, j], final_ret[:, j])
     return out
@@ -125,7 +160,8 @@ def summary_table(records: dict[str, dict]) -> str:
     """Markdown, one row per run of the given ``--horizon`` results: the final set's generated trajectories,
     how many fail which proxy, and the oracle mean / max before → after, as flowed and with those swapped back."""
     rows = ["| file | task | seed | diffuser | generated in final set | fail: frame stack / hand model / contact "
-            "| plain mean | plain max | filled mean | filled max |", "|---|---|---|---|---|---|---|---|---|---|"]
+            "| plain mean | plain max | filled mean | filled max | filled mean, stop rule | filled max, stop rule |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for name, record in records.items():
         limits = record["config"]
         for entry in record["runs"].values():
@@ -139,7 +175,8 @@ def summary_table(records: dict[str, dict]) -> str:
             filled = next(k for k in imp if k.startswith("filled_") and not k.endswith("_checked"))
             cols = [f"{_before_after(imp[base], stat)} "
                     f"({imp[base + '_physically_checked'][f'true_return_{stat}_after']:.0f} checked)"
-                    for base in ("plain", filled) for stat in ("mean", "max")]
+                    if base in imp else "—"
+                    for base in ("plain", filled, filled + "_stop_rule") for stat in ("mean", "max")]
             rows.append(f"| {name} | {entry['env']} | {entry['seed']} | "
                         f"{'structure' if entry.get('observation_structure') else 'raw'} | {len(gen)} | "
                         f"{' / '.join(map(str, fails))} (any: {entry['physically_invalid_in_final_set']}) | "

@@ -5,7 +5,7 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from torchrl_ftb.data import validate_trajectories
+from torchrl_ftb.data import success_streak_length, validate_trajectories
 from torchrl_ftb.datasets import (
     GROUPS,
     dataset_stats,
@@ -74,6 +74,13 @@ def test_generated_dataset_follows_conventions_and_recipe(tiny_dataset):
     succ = td["next", "success"][0, :length, 0]
     assert length < 150 and bool(succ[-SUCCESS_STREAK:].all()) and not bool(succ[-SUCCESS_STREAK - 1])
     assert bool(td["next", "truncated"][0, length - 1]) and not bool(td["next", "terminated"].any())
+    # success_streak_length is the generator's stop rule: on recorded episodes it cuts nothing
+    cut = success_streak_length(td["next", "success"][..., 0], mask, streak=SUCCESS_STREAK)
+    assert cut.tolist() == mask.sum(-1).tolist()
+    # ... and on an episode run on past its streak (as a generated one may be) it cuts where the data stop
+    longer = torch.cat([td["next", "success"][0, :length, 0], torch.ones(10, dtype=torch.bool)])
+    assert int(success_streak_length(longer[None], torch.ones(1, length + 10, dtype=torch.bool),
+                                     streak=SUCCESS_STREAK)) == length
     assert int(td["next", "done"].sum()) == len(GROUPS)  # one end per episode
     # the random group does not solve the task and runs to the time limit
     assert int(mask[2].sum()) == 150
@@ -137,3 +144,10 @@ def test_expert_replay_keeps_each_episodes_goal_and_start(tiny_dataset):
     plain, filled = bench.returns(short, horizon=5)
     assert plain.tolist() == [3.0, 3.0] and filled.tolist() == [9.0, 5.0]  # the last reward, repeated to 5 steps
     assert bench.match_rows(td["observation"][[2, 0]], td["observation"]).tolist() == [2, 0]
+    # bench/flow_generated.py's oracle returns: on recorded episodes the stop rule cuts nothing, and the
+    # oracle's plain / filled returns are the recorded ones (up to the rewarder's approximations)
+    flow_bench = load_script(Path(__file__).resolve().parents[1] / "bench" / "flow_generated.py", "bench_flow_generated")
+    oracle = flow_bench.metaworld_returns("button-press-v3", td, horizon=500)
+    torch.testing.assert_close(oracle[:, 2], oracle[:, 1])
+    recorded = torch.stack(bench.returns(td, horizon=500), -1)
+    torch.testing.assert_close(oracle[:, :2], recorded, rtol=0.02, atol=0.0)

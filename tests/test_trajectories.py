@@ -10,6 +10,7 @@ from torchrl_ftb.data import (
     load_trajectories,
     pad_trajectories,
     save_trajectories,
+    success_streak_length,
     trajectories_to_flat,
     trajectory_lengths,
     validate_trajectories,
@@ -120,3 +121,28 @@ def test_save_refuses_invalid_and_leaves_nothing(tmp_path, toy_data):
     with pytest.raises(ValueError):
         save_trajectories(bad, tmp_path / "x")
     assert not (tmp_path / "x").exists()
+
+
+def test_success_streak_length_is_the_generators_stop_rule():
+    """The first step that completes ``streak`` consecutive valid successes ends the episode; padding
+    never counts; without a streak a trajectory keeps its own length (checked against a plain loop)."""
+    gen = torch.Generator().manual_seed(0)
+    success = torch.rand(64, 30, generator=gen) < 0.7
+    lengths = torch.randint(0, 31, (64,), generator=gen)
+    mask = torch.arange(30) < lengths[:, None]
+    got = success_streak_length(success, mask, streak=4)
+    for i in range(64):
+        run, want = 0, int(lengths[i])
+        for h in range(int(lengths[i])):
+            run = run + 1 if bool(success[i, h]) else 0
+            if run == 4:
+                want = h + 1
+                break
+        assert int(got[i]) == want, i
+    # successes in the padding do not complete a streak
+    assert success_streak_length(torch.ones(1, 6, dtype=torch.bool), torch.arange(6)[None] < 3, streak=4).tolist() == [3]
+    with pytest.raises(ValueError, match="streak must be >= 1"):
+        success_streak_length(success, mask, streak=0)
+    with pytest.raises(ValueError, match="differ in shape"):
+        success_streak_length(success[:, :5], mask, streak=2)
+

@@ -34,6 +34,7 @@ __all__ = [
     "REQUIRED_KEYS",
     "trajectory_lengths",
     "stop_rule_fill",
+    "success_streak_length",
     "validate_trajectories",
     "flat_to_trajectories",
     "trajectories_to_flat",
@@ -102,6 +103,45 @@ def stop_rule_fill(
     if terminated is not None:
         keep = keep & ~terminated.reshape(mask.shape).bool().gather(-1, last[..., None]).squeeze(-1)
     return last, weight * keep
+
+
+def success_streak_length(success: torch.Tensor, mask: torch.Tensor, *, streak: int) -> torch.Tensor:
+    """Where a success-streak stop rule would have ended each trajectory: its length in steps.
+
+    Our Meta-World episodes stop once ``streak`` consecutive steps succeed (the step that completes
+    the streak is the last one kept). A generated trajectory is not cut by that rule, so scoring it
+    with the stop-rule fill (:func:`stop_rule_fill`) without cutting it first measures it under
+    another protocol than the data: this gives the cut.
+
+    Args:
+        success: ``bool [*B, H]`` per-step success flags.
+        mask: ``bool [*B, H]`` valid steps (a prefix).
+        streak: consecutive successes that end an episode (>= 1).
+
+    Returns:
+        ``int64 [*B]``: the step count up to and including the step that completes the first streak,
+        or the trajectory's own length where no streak completes.
+
+    Example:
+        >>> success = torch.tensor([[False, True, True, True, False], [True, False, True, False, True]])
+        >>> success_streak_length(success, torch.ones(2, 5, dtype=torch.bool), streak=2)
+        tensor([3, 5])
+    """
+    if streak < 1:
+        raise ValueError(f"success_streak_length: streak must be >= 1, got {streak}")
+    if success.shape != mask.shape:
+        raise ValueError(f"success_streak_length: success {tuple(success.shape)} and mask {tuple(mask.shape)} "
+                         "differ in shape")
+    ok = (success.bool() & mask.bool()).long()
+    # run[h] = consecutive successes ending at h: cumulative count minus the count at the last failure
+    count = ok.cumsum(-1)
+    at_failure = torch.where(ok.bool(), torch.zeros_like(count), count)
+    run = count - at_failure.cummax(-1).values
+    done = run >= streak
+    steps = mask.shape[-1]
+    first = torch.where(done, torch.arange(steps, device=mask.device).expand_as(done),
+                        torch.full_like(count, steps)).amin(-1)
+    return torch.where(first < steps, first + 1, mask.long().sum(-1))
 
 
 def validate_trajectories(
