@@ -107,15 +107,11 @@ def metaworld_returns(task: str, trajs: TensorDict, *, horizon: int) -> torch.Te
     ``horizon`` steps, and the same fill after cutting each trajectory where our episodes' stop rule
     (``SUCCESS_STREAK`` consecutive successes, :func:`~torchrl_ftb.data.success_streak_length`) would have
     ended it -- the data were cut there when recorded, generated trajectories were not. One simulator pass
-    per trajectory (:func:`~torchrl_ftb.envs.metaworld_true_reward` gives reward and success); the sums are
+    (:func:`~torchrl_ftb.envs.metaworld_true_reward` gives reward and success); the sums are
     :func:`~torchrl_ftb.data.labels.true_return`'s."""
     mask = trajs.get("mask")
-    reward = torch.zeros(mask.shape, dtype=torch.float64)
-    success = torch.zeros(mask.shape, dtype=torch.bool)
-    for i, n in enumerate(mask.sum(-1).tolist()):
-        if n:
-            r, s = metaworld_true_reward(task, trajs.get("observation")[i:i + 1, :n], trajs.get("action")[i:i + 1, :n])
-            reward[i, :n], success[i, :n] = r.reshape(-1).double(), s.reshape(-1).bool()
+    reward, success = metaworld_true_reward(task, trajs.get("observation"), trajs.get("action"), mask=mask)
+    reward, success = reward.squeeze(-1).double(), success.squeeze(-1)
     cut = torch.arange(mask.shape[-1]) < success_streak_length(success, mask, streak=SUCCESS_STREAK)[:, None]
 
     def scored(m: torch.Tensor) -> TensorDict:

@@ -168,6 +168,18 @@ def test_metaworld_true_reward_matches_env_on_real_transitions(button_press_epis
     r_true, _ = metaworld_true_reward("button-press-v3", td["observation"], td["action"],
                                       next_observation=td["next", "observation"])
     assert r_far.sum() < 0.5 * r_true.sum()
+    # a padded batch (mask) is scored as each valid prefix alone: the shifted next observation of the last
+    # valid step is its own, never the padding
+    length = 50
+    padded = td.select("observation", "action").clone()
+    padded["observation"][:, length:] = 0.0
+    two = torch.cat([td.select("observation", "action"), padded], 0)
+    mask = torch.stack([td["mask"][0], torch.arange(td.shape[1]) < length])
+    r_two, s_two = metaworld_true_reward("button-press-v3", two["observation"], two["action"], mask=mask)
+    r_alone, s_alone = metaworld_true_reward("button-press-v3", td["observation"][0, :length], td["action"][0, :length])
+    r_full, _ = metaworld_true_reward("button-press-v3", td["observation"], td["action"])
+    assert torch.equal(r_two[1, :length], r_alone) and torch.equal(s_two[1, :length], s_alone)
+    assert torch.equal(r_two[0], r_full[0]) and not bool(r_two[1, length:].any())
     with pytest.raises(ValueError, match="observation"):
         metaworld_true_reward("button-press-v3", torch.zeros(3, 38), torch.zeros(3, 4))
 

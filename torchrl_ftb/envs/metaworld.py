@@ -369,7 +369,8 @@ def metaworld_true_reward(
         observation: ``[H, 39]`` or ``[N, H, 39]`` states ``s_h``.
         action: ``[H, 4]`` or ``[N, H, 4]`` actions ``a_h``.
         next_observation: ``s_{h+1}``; if ``None`` the sequence is shifted by one step and
-            the last step reuses its own observation (an approximation on that step only).
+            the last (valid) step reuses its own observation (an approximation on that step only;
+            padding is never read).
         mask: optional ``[N, H]`` valid-step mask; padded steps get reward 0 / False.
 
     Returns:
@@ -384,14 +385,11 @@ def metaworld_true_reward(
     squeeze = observation.ndim == 2
     obs = _as_batch(observation, "observation", 39)
     act = _as_batch(action, "action", 4)
-    if next_observation is None:
-        nxt = np.concatenate([obs[:, 1:], obs[:, -1:]], 1)
-    else:
-        nxt = _as_batch(next_observation, "next_observation", 39)
-    if act.shape[:2] != obs.shape[:2] or nxt.shape != obs.shape:
+    nxt = None if next_observation is None else _as_batch(next_observation, "next_observation", 39)
+    if act.shape[:2] != obs.shape[:2] or (nxt is not None and nxt.shape != obs.shape):
         raise ValueError(
             f"observation {list(obs.shape)}, action {list(act.shape)} and next_observation "
-            f"{list(nxt.shape)} do not share [N, H]"
+            f"{None if nxt is None else list(nxt.shape)} do not share [N, H]"
         )
     n, h = obs.shape[:2]
     m = np.ones((n, h), dtype=bool) if mask is None else _mask_np(mask, n, h)
@@ -402,7 +400,10 @@ def metaworld_true_reward(
         length = int(m[i].sum())
         if length == 0:
             continue
-        r, s = rewarder(obs[i, :length], act[i, :length], nxt[i, :length])
+        o = obs[i, :length]
+        # shifted within the valid prefix: the last valid step's next state is its own, not padding
+        o_next = np.concatenate([o[1:], o[-1:]], 0) if nxt is None else nxt[i, :length]
+        r, s = rewarder(o, act[i, :length], o_next)
         rewards[i, :length], success[i, :length] = r, s
     r_t, s_t = torch.from_numpy(rewards)[..., None], torch.from_numpy(success)[..., None]
     return (r_t[0], s_t[0]) if squeeze else (r_t, s_t)
