@@ -46,12 +46,13 @@ def returns(trajs: TensorDict, *, horizon: int) -> tuple[torch.Tensor, torch.Ten
     return true_return(trajs).double(), true_return(trajs, horizon=horizon).double()
 
 
-def replay_expert(task: str, per: dict, *, seed: int, noise: float, max_steps: int,
-                  progress: bool) -> tuple[TensorDict, torch.Tensor, torch.Tensor]:
+def replay_expert(task: str, per: dict, *, seed: int, noise: float, max_steps: int, progress: bool,
+                  groups: "list[str] | tuple[str, ...]" = GROUPS) -> tuple[TensorDict, torch.Tensor, torch.Tensor]:
     """The task's scripted expert on every episode's goal and start: ``(trajectories [N, max_steps]``
     (``mask``, ``("next", "reward")``, ``("next", "terminated")``: never, a success streak truncates),
-    ``success [N], first_observation [N, 39])``."""
-    jobs = list(zip(per["group"].tolist(), per["episode"].tolist()))
+    ``success [N], first_observation [N, 39])``. ``per["group"]`` indexes ``groups`` (the dataset's
+    ``meta["groups"]``)."""
+    jobs = [(GROUPS.index(groups[g]), e) for g, e in zip(per["group"].tolist(), per["episode"].tolist())]
     bar = tqdm(total=len(jobs), desc=f"{task} expert replays", disable=not progress)
     eps = generate_metaworld_episodes(task, jobs, seed=seed, noise=noise, max_steps=max_steps,
                                       on_episode=lambda: bar.update(1), expert=True)
@@ -93,8 +94,9 @@ def headroom(run: Path, *, noise: float, horizon: int, progress: bool) -> dict:
     mask = td.get("mask")
     data_plain, data_filled = returns(td, horizon=horizon)
     data_success = td.get(("next", "success")).squeeze(-1).any(-1)
+    groups = list(meta["groups"])
     expert, esuccess, first = replay_expert(name, per, seed=int(meta["seed"]), noise=noise,
-                                            max_steps=int(meta["max_steps"]), progress=progress)
+                                            max_steps=int(meta["max_steps"]), progress=progress, groups=groups)
     start_error = float((first - td.get("observation")[:, 0]).abs().max())
     if start_error > 1e-4:
         raise ValueError(f"{run}: the replayed starts differ from the recorded ones by {start_error:.2g} "
@@ -103,7 +105,7 @@ def headroom(run: Path, *, noise: float, horizon: int, progress: bool) -> dict:
     emask = expert.get("mask")
     out = {"env": name, "seed": int(cfg.seed), "dataset": meta["path"], "start_max_abs_error": start_error,
            "groups": {}}
-    for g, group in enumerate(GROUPS):
+    for g, group in enumerate(groups):
         sel = per["group"] == g
         out["groups"][group] = {
             "dataset": {"plain": stats(data_plain[sel]), "filled": stats(data_filled[sel]),
@@ -127,7 +129,7 @@ def headroom(run: Path, *, noise: float, horizon: int, progress: bool) -> dict:
                         "per_goal_gain_mean": float((e - d).mean()),
                         "per_goal_expert_better": float((e > d).double().mean())}
         out["top_k"] = {"k": int(rows.numel()), "groups": {g: int((per["group"][rows] == i).sum())
-                                                           for i, g in enumerate(GROUPS)}, **top}
+                                                           for i, g in enumerate(groups)}, **top}
     return out
 
 

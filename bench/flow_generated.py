@@ -46,12 +46,10 @@ from tensordict import TensorDict
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from torchrl_ftb.data import success_streak_length  # noqa: E402
-from torchrl_ftb.data.labels import true_return  # noqa: E402
 from torchrl_ftb.datasets.metaworld import SUCCESS_STREAK  # noqa: E402
 from torchrl_ftb.envs import (METAWORLD_PHYSICS_PROXIES, env_kind, fit_metaworld_contact_reach,  # noqa: E402
                               fit_metaworld_hand_model, metaworld_contactless_object_path,
-                              metaworld_hand_model_error, metaworld_physics_errors, metaworld_true_reward,
+                              metaworld_hand_model_error, metaworld_physics_errors,
                               true_reward_fn)
 from torchrl_ftb.flow import masked_true_returns, return_summary  # noqa: E402
 from torchrl_ftb.provenance import run_record, write_json  # noqa: E402
@@ -105,21 +103,11 @@ def physically_invalid(rows: list[dict], **limits: float) -> torch.Tensor:
 def metaworld_returns(task: str, trajs: TensorDict, *, horizon: int) -> torch.Tensor:
     """``float64 [N, 3]`` oracle true returns of Meta-World trajectories: plain, with the stop-rule fill to
     ``horizon`` steps, and the same fill after cutting each trajectory where our episodes' stop rule
-    (``SUCCESS_STREAK`` consecutive successes, :func:`~torchrl_ftb.data.success_streak_length`) would have
-    ended it -- the data were cut there when recorded, generated trajectories were not. One simulator pass
-    (:func:`~torchrl_ftb.envs.metaworld_true_reward` gives reward and success); the sums are
-    :func:`~torchrl_ftb.data.labels.true_return`'s."""
-    mask = trajs.get("mask")
-    reward, success = metaworld_true_reward(task, trajs.get("observation"), trajs.get("action"), mask=mask)
-    reward, success = reward.squeeze(-1).double(), success.squeeze(-1)
-    cut = torch.arange(mask.shape[-1]) < success_streak_length(success, mask, streak=SUCCESS_STREAK)[:, None]
-
-    def scored(m: torch.Tensor) -> TensorDict:
-        return TensorDict({"mask": m, "next": {"reward": (reward * m)[..., None],
-                                               "terminated": torch.zeros_like(m)[..., None]}}, batch_size=m.shape)
-    full, stopped = scored(mask), scored(mask & cut)
-    return torch.stack([true_return(full), true_return(full, horizon=horizon),
-                        true_return(stopped, horizon=horizon)], -1).double()
+    (``SUCCESS_STREAK`` consecutive successes) would have ended it -- the data were cut there when recorded,
+    generated trajectories were not. One simulator pass per trajectory; the recipe's flow statistics use the
+    same function (:func:`~torchrl_ftb.flow.masked_true_returns`, ``flow.true_return_streak``)."""
+    return masked_true_returns(trajs, true_reward_fn(task, with_success=True), horizons=(None, horizon, horizon),
+                               streaks=(None, None, SUCCESS_STREAK))
 
 
 def oracle_improvement(task: str, original: TensorDict, final: TensorDict, generated: torch.Tensor,

@@ -403,6 +403,8 @@ def stage_flow(cfg, run: RunDir, trajs, scores, block_ids, sampler, model, true_
         candidates=int(f.get("candidates", 1)),
         true_return_horizon=None if true_reward_fn is None or f.get("true_return_horizon") is None
         else int(f.true_return_horizon),
+        true_return_streak=None if true_reward_fn is None or f.get("true_return_streak") is None
+        else int(f.true_return_streak),
         ensemble_rule=str(f.get("ensemble_rule", "mean")), logger=logger,
         validity_fn=validity_fn,
         progress=bool(cfg.progress),
@@ -472,6 +474,10 @@ def final_table(metrics: dict) -> list[tuple[str, str]]:
     if "true_return_filled_mean_before" in fl:
         rows.append((f"true return, stop-rule fill to {int(fl['true_return_horizon'])} steps: before -> after",
                      f"{fl['true_return_filled_mean_before']:.4g} -> {fl['true_return_filled_mean_after']:.4g}"))
+    if "true_return_filled_stop_rule_mean_before" in fl:
+        rows.append((f"the same after the stop-rule cut ({int(fl['true_return_streak'])} successes): before -> after",
+                     f"{fl['true_return_filled_stop_rule_mean_before']:.4g} -> "
+                     f"{fl['true_return_filled_stop_rule_mean_after']:.4g}"))
     rows += [
         ("flow steps run / planned", f"{int(fl['flow_steps_run'])} / {int(fl['flow_steps_planned'])}"),
         ("generated trajectories in final set", _fmt(fl["fraction_generated_in_final"])),
@@ -540,6 +546,12 @@ def run(cfg: DictConfig) -> dict:
             raise ValueError(f"{key} is the stop-rule fill for tasks without terminal states (Meta-World); "
                              f"env.name={cfg.env.name!r} episodes terminate (falls) and the diffuser's samples carry "
                              f"no termination flag: leave it null")
+    if cfg.flow.get("true_return_streak") is not None:
+        if kind != "metaworld":
+            raise ValueError(f"flow.true_return_streak is the Meta-World stop rule's cut; env.name={cfg.env.name!r} "
+                             f"is {kind}: leave it null")
+        if cfg.flow.get("true_return_horizon") is None:
+            raise ValueError("flow.true_return_streak needs flow.true_return_horizon (the cut applies to that fill)")
     stop_after = cfg.get("stop_after")
     if stop_after is not None and stop_after not in STAGES:
         raise ValueError(f"stop_after={stop_after!r}: not a stage; choose one of {list(STAGES)}")
@@ -642,7 +654,8 @@ def run(cfg: DictConfig) -> dict:
 
     # 6. flow ---------------------------------------------------------------------------
     t0 = time.perf_counter()
-    reward_fn = true_reward_fn(cfg.env.name) if cfg.flow.true_reward else None
+    streak = cfg.flow.get("true_return_streak")
+    reward_fn = true_reward_fn(cfg.env.name, with_success=streak is not None) if cfg.flow.true_reward else None
     flow = stage_flow(cfg, run_dir, trajs, scores, block_ids, make_sampler(cfg, diffuser), model,
                       reward_fn, logger)
     timed("flow", t0)

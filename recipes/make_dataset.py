@@ -3,6 +3,7 @@
 Usage:
     python recipes/make_dataset.py --env button-press-v3 \
         [--episodes-per-group 100 --noise 1.0 --seed 0 --max-steps 500 --out DIR --workers 2]
+        [--groups expert within random]   # Meta-World: a subset of expert/within/random/cross
 
 The generator is looked up by env name in ``torchrl_ftb.datasets.registry`` (Meta-World v3
 tasks today; any module that registers itself is picked up without changing this script).
@@ -24,6 +25,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--max-steps", type=int, default=None, help="time limit / padded horizon")
     parser.add_argument("--out", default=None, help="cache dir (default $TORCHRL_FTB_DATA or ~/.cache/torchrl_ftb/datasets)")
     parser.add_argument("--workers", type=int, default=None, help="worker processes")
+    parser.add_argument("--groups", nargs="+", default=None,
+                        help="Meta-World: which groups to generate (default all: expert within random cross)")
     parser.add_argument("--no-progress", action="store_true")
     parser.add_argument("--json", action="store_true", help="print the statistics as JSON")
     return parser.parse_args(argv)
@@ -39,6 +42,7 @@ def main(argv=None) -> dict:
         "max_steps": args.max_steps,
         "out": args.out,
         "num_workers": args.workers,
+        "groups": args.groups,
     }
     options = {k: v for k, v in options.items() if v is not None}  # generator defaults otherwise
     td, meta = generator.fn(args.env, progress=not args.no_progress, **options)

@@ -28,6 +28,21 @@ def test_bad_options_raise():
         make_metaworld_dataset("button-press")
     with pytest.raises(ValueError, match="episodes_per_group"):
         make_metaworld_dataset("button-press-v3", episodes_per_group=0)
+    with pytest.raises(ValueError, match=r"groups: unknown group\(s\) \['experts'\]"):
+        make_metaworld_dataset("button-press-v3", groups=["experts"])
+    with pytest.raises(ValueError, match="groups: need one or more distinct"):
+        make_metaworld_dataset("button-press-v3", groups=["random", "random"])
+    with pytest.raises(ValueError, match="groups: need one or more distinct"):
+        make_metaworld_dataset("button-press-v3", groups=[])
+
+
+def test_recipe_section_passes_groups_to_the_metaworld_generator():
+    from torchrl_ftb.datasets import dataset_kwargs
+
+    section = {"seed": 0, "episodes_per_group": 2, "noise": 3.0, "groups": ["expert", "random"], "options": {}}
+    kw = dataset_kwargs("button-press-v3", section, max_episode_steps=50, progress=False)
+    assert kw["groups"] == ["expert", "random"] and kw["noise"] == 3.0 and kw["max_steps"] == 50
+    assert "groups" not in dataset_kwargs("button-press-v3", {**section, "groups": None}, progress=False)
 
 
 def test_cache_dir_env_override(monkeypatch, tmp_path):
@@ -105,6 +120,23 @@ def test_cache_reload_is_identical_and_config_changes_the_key(tiny_dataset):
     # noise changes the expert's actions; the first observation (fixed goal, same seed) is the same
     assert torch.equal(td3["observation"][0, 0], td["observation"][0, 0])
     assert not torch.allclose(td3["action"][0, :20], td["action"][0, :20])
+
+
+@pytest.mark.integration
+def test_a_group_subset_holds_those_groups_episodes_of_the_full_dataset(tiny_dataset):
+    td, meta, cache = tiny_dataset
+    sub, smeta = make_metaworld_dataset("button-press-v3", episodes_per_group=1, noise=0.0, seed=0, max_steps=150,
+                                        cache_dir=cache, progress=False, groups=("random", "expert"))
+    assert smeta["groups"] == ["expert", "random"] and smeta["path"] != meta["path"]
+    assert smeta["per_trajectory"]["group"].tolist() == [0, 1]  # indexes smeta["groups"]
+    full_rows = [list(GROUPS).index("expert"), list(GROUPS).index("random")]
+    assert (sub == td[full_rows]).all()
+    stats = dataset_stats(sub, smeta["per_trajectory"], groups=smeta["groups"])
+    assert set(stats) == {"expert", "random", "all"} and stats["expert"]["success_rate"] == 1.0
+    # the full dataset's cache key is that of earlier versions: naming all four groups finds it
+    _, again = make_metaworld_dataset("button-press-v3", episodes_per_group=1, noise=0.0, seed=0, max_steps=150,
+                                      cache_dir=cache, progress=False, groups=list(reversed(GROUPS)))
+    assert again["path"] == meta["path"]
 
 
 @pytest.mark.integration

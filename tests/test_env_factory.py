@@ -93,6 +93,11 @@ def test_metaworld_env_matches_its_dataset(tmp_path):
     env.close()
     reward = true_reward_fn("button-press-v3")(td["observation"][0], td["action"][0])
     assert reward.shape == (10, 1)
+    # the same simulator pass with its success flags (the flow's stop-rule cut)
+    again, success = true_reward_fn("button-press-v3", with_success=True)(td["observation"][0], td["action"][0])
+    assert torch.equal(again, reward) and success.shape == (10, 1) and success.dtype == torch.bool
+    with pytest.raises(ValueError, match="only Meta-World envs have a per-step success signal"):
+        true_reward_fn("toy", with_success=True)
 
 
 @pytest.mark.integration

@@ -266,6 +266,49 @@ def test_true_return_stop_rule_fill_pays_a_faster_success_more():
         masked_true_returns(td, reward, horizons=(0,))
 
 
+def test_stop_rule_cut_scores_a_sample_as_if_its_episode_had_stopped():
+    # per-step reward = the action, success = reward >= 5; a stop rule of 2 consecutive successes
+    td = TensorDict({"observation": torch.zeros(2, 6, 1), "action": torch.tensor([[1., 5., 6., 7., 8., 9.],
+                                                                                   [1., 5., 1., 5., 6., 2.]])[..., None],
+                     "mask": torch.tensor([[True] * 6, [True] * 5 + [False]])}, [2, 6])
+
+    def reward_and_success(o, a):
+        r = a.sum(-1)
+        return r, r >= 5
+
+    cols = masked_true_returns(td, reward_and_success, horizons=(None, 6, 6), streaks=(None, None, 2))
+    # row 0: the rule stops it after step 2 (5, 6 succeed): 1 + 5 + 6, then 6 kept for the 3 remaining steps
+    assert cols[0].tolist() == [36.0, 36.0, 12.0 + 3 * 6.0]
+    # row 1: its streak (5, 6) ends at its 5th step: the cut keeps all 5 steps; fill 1 step of 6
+    assert cols[1].tolist() == [18.0, 24.0, 24.0]
+    # a plain reward function still works without streaks, and is refused with them
+    reward = lambda o, a: a.sum(-1)  # noqa: E731
+    assert masked_true_returns(td, reward, horizons=(None,))[:, 0].tolist() == [36.0, 18.0]
+    with pytest.raises(ValueError, match=r"streaks= needs a true_reward_fn that returns \(reward, success\)"):
+        masked_true_returns(td, reward, horizons=(6,), streaks=(2,))
+    with pytest.raises(ValueError, match="one entry"):
+        masked_true_returns(td, reward_and_success, horizons=(6,), streaks=(2, 2))
+    # in the flow: a third column, stop_rule, beside plain and filled
+    data = make_toy_dataset(num_trajectories=40, horizon=H, seed=1)
+
+    def toy_with_success(o, a):
+        r = toy_reward(o, a)
+        return r, r.reshape(-1) > 0
+
+    flow = FlowToBetter(_shift_sampler(0.2), _sum_ax, top_k=8, threshold=1.0, flow_steps=1, progress=False,
+                        true_reward_fn=toy_with_success, true_return_horizon=2 * H, true_return_streak=3,
+                        early_stop_fraction=0.0)
+    res = flow(data)
+    expected = masked_true_returns(res.trajectories, toy_with_success, horizons=(2 * H,), streaks=(3,))[:, 0]
+    assert res.summary["true_return_filled_stop_rule_mean_after"] == pytest.approx(float(expected.mean()))
+    assert res.summary["true_return_streak"] == 3 and "true_return_filled_stop_rule_max" in res.stats[0]
+    assert torch.allclose(res.filled_true_returns, masked_true_return(res.trajectories, toy_reward, horizon=2 * H),
+                          atol=1e-5)
+    with pytest.raises(ValueError, match="true_return_streak needs a true_return_horizon"):
+        FlowToBetter(_shift_sampler(0.2), _sum_ax, top_k=8, flow_steps=1, true_reward_fn=toy_with_success,
+                     true_return_streak=3)
+
+
 def test_flow_reports_the_filled_true_return_beside_the_plain_one():
     data = make_toy_dataset(num_trajectories=40, horizon=H, seed=1)
     flow = FlowToBetter(_shift_sampler(0.2), _sum_ax, top_k=8, threshold=1.0, flow_steps=2, progress=False,

@@ -183,6 +183,11 @@ def test_bad_config_is_a_clear_error(tmp_path):
     with pytest.raises(ValueError, match="flow.true_return_horizon is the stop-rule fill"):
         recipe.run(_cfg(tmp_path / "h2", "env.name=hopper", "flow.true_return_horizon=1000"))
     assert not (tmp_path / "h").exists()
+    with pytest.raises(ValueError, match="flow.true_return_streak is the Meta-World stop rule's cut"):
+        recipe.run(_cfg(tmp_path / "h3", "flow.true_return_horizon=64", "flow.true_return_streak=25"))
+    with pytest.raises(ValueError, match="flow.true_return_streak needs flow.true_return_horizon"):
+        recipe.run(_cfg(tmp_path / "h3", "env.name=button-press-v3", "flow.true_return_streak=25"))
+    assert not (tmp_path / "h3").exists()
     with pytest.raises(ValueError, match=r"labels.query.strategy='margin': choose one of \['random'"):
         recipe.run(_cfg(tmp_path / "g", "labels.query.strategy=margin"))
     assert not (tmp_path / "g").exists()
@@ -246,10 +251,12 @@ def test_metaworld_config_is_the_paper_defaults_plus_the_fill_and_a_larger_top_k
         ours = compose(config_name="ftb_offline_metaworld", overrides=["env.name=plate-slide-v3"])
     assert ours.score_model.horizon == ours.flow.true_return_horizon == ours.env.max_episode_steps == 500
     assert ours.flow.top_k == 200 and paper.flow.top_k == 100 and paper.score_model.horizon is None
+    assert ours.flow.true_return_streak == 25 and paper.flow.true_return_streak is None  # a statistic only
     # nothing else differs from the paper's defaults
     a, b = OmegaConf.to_container(paper, resolve=False), OmegaConf.to_container(ours, resolve=False)
     a["env"]["name"] = b["env"]["name"]
-    for section, key in (("score_model", "horizon"), ("flow", "top_k"), ("flow", "true_return_horizon")):
+    for section, key in (("score_model", "horizon"), ("flow", "top_k"), ("flow", "true_return_horizon"),
+                         ("flow", "true_return_streak")):
         a[section].pop(key), b[section].pop(key)
     assert a == b
 

@@ -73,7 +73,7 @@ def make_dataset(
         progress: tqdm bars while generating (Meta-World and locomotion).
         **options: the generator's own options. Toy: ``num_trajectories``, ``horizon``,
             ``noise`` (:func:`~torchrl_ftb.testing.make_toy_dataset`); Meta-World:
-            ``episodes_per_group``, ``noise``, ``max_steps``, ``num_workers``
+            ``episodes_per_group``, ``noise``, ``max_steps``, ``num_workers``, ``groups``
             (:func:`~torchrl_ftb.datasets.make_metaworld_dataset`); locomotion:
             ``num_transitions``, ``deterministic`` (see ``torchrl_ftb.datasets.locomotion``).
             ``None`` values mean "the generator's default".
@@ -133,7 +133,8 @@ def make_dataset(
 
 
 #: keys of a recipe's ``dataset:`` section that each env family's generator takes
-_SECTION_KEYS = {"toy": ("num_trajectories", "horizon"), "metaworld": ("episodes_per_group", "noise", "num_workers")}
+_SECTION_KEYS = {"toy": ("num_trajectories", "horizon"),
+                 "metaworld": ("episodes_per_group", "noise", "num_workers", "groups")}
 
 
 def dataset_kwargs(
@@ -144,7 +145,7 @@ def dataset_kwargs(
     The recipes (``recipes/config/*.yaml``) share one ``dataset:`` section for every env
     family; this picks what ``name``'s family uses, so the same config serves toy, Meta-World
     and locomotion runs: ``seed`` and ``cache_dir`` always; toy ``num_trajectories``,
-    ``horizon``; Meta-World ``episodes_per_group``, ``noise``, ``num_workers`` and
+    ``horizon``; Meta-World ``episodes_per_group``, ``noise``, ``num_workers``, ``groups`` and
     ``max_steps=max_episode_steps``; locomotion the ``options`` mapping (``kind``,
     ``num_transitions``, ``deterministic``). Missing keys take the generator's default.
 

@@ -57,6 +57,7 @@ __all__ = [
     "default_cache_dir",
     "make_metaworld_dataset",
     "generate_metaworld_episodes",
+    "check_groups",
     "dataset_stats",
     "format_stats",
 ]
@@ -196,7 +197,25 @@ def _to_trajectories(episodes: list[dict], horizon: int) -> tuple[TensorDict, Te
     return td, per_traj
 
 
-def _config(task, episodes_per_group, noise, seed, max_steps) -> dict:
+def check_groups(groups) -> list[str]:
+    """``groups`` as a list in :data:`GROUPS` order; a clear ``ValueError`` if empty, repeated or unknown.
+
+    Example:
+        >>> check_groups(["random", "expert"])
+        ['expert', 'random']
+    """
+    if isinstance(groups, str):
+        groups = [groups]
+    groups = [str(g) for g in groups]
+    unknown = [g for g in groups if g not in GROUPS]
+    if unknown:
+        raise ValueError(f"groups: unknown group(s) {unknown}; choose from {list(GROUPS)}")
+    if not groups or len(set(groups)) != len(groups):
+        raise ValueError(f"groups: need one or more distinct groups of {list(GROUPS)}, got {groups}")
+    return [g for g in GROUPS if g in groups]
+
+
+def _config(task, episodes_per_group, noise, seed, max_steps, groups=GROUPS) -> dict:
     import importlib.metadata
 
     return {
@@ -205,7 +224,7 @@ def _config(task, episodes_per_group, noise, seed, max_steps) -> dict:
         "noise": float(noise),
         "seed": int(seed),
         "max_steps": int(max_steps),
-        "groups": list(GROUPS),
+        "groups": check_groups(groups),  # all four: the key (and cache path) of earlier versions
         "success_streak": SUCCESS_STREAK,
         "action_clip": ACTION_CLIP,
         "generator": "torchrl_ftb.datasets.metaworld",
@@ -230,6 +249,7 @@ def make_metaworld_dataset(
     cache_dir: str | os.PathLike | None = None,
     progress: bool = True,
     num_workers: int = 1,
+    groups: "list[str] | tuple[str, ...]" = GROUPS,
 ) -> tuple[TensorDict, dict]:
     """Generate (or load from the cache) an IPL-style Meta-World dataset.
 
@@ -243,9 +263,13 @@ def make_metaworld_dataset(
             the whole config and the generator version.
         progress: show a tqdm bar.
         num_workers: worker processes (results are identical for any value).
+        groups: which of :data:`GROUPS` to generate (default all four). An episode's
+            randomness depends only on ``(seed, group, episode)``, so a subset holds exactly
+            those groups' episodes of the full dataset (e.g. ``("expert", "within", "random")``
+            drops the cross-env episodes, whose returns can exceed the expert's).
 
     Returns:
-        ``(td, meta)``: the ``[4 * episodes_per_group, max_steps]`` trajectory batch (keys of
+        ``(td, meta)``: the ``[len(groups) * episodes_per_group, max_steps]`` trajectory batch (keys of
         ``docs/conventions.md`` incl. ``("next", "success")`` and ``"state"``; ordered by group
         then episode) and the metadata dict of ``meta.json`` plus ``meta["path"]`` and
         ``meta["per_trajectory"]``, an ``[N]`` TensorDict with ``"group"`` (index into
@@ -264,18 +288,21 @@ def make_metaworld_dataset(
         raise ValueError(f"max_steps must be >= 1, got {max_steps}")
     if num_workers < 1:
         raise ValueError(f"num_workers must be >= 1, got {num_workers}")
-    config = _config(task, episodes_per_group, noise, seed, max_steps)
+    config = _config(task, episodes_per_group, noise, seed, max_steps, groups)
     path = _cache_path(Path(cache_dir).expanduser() if cache_dir else default_cache_dir(), config)
     if (path / "meta.json").exists():
         td, meta, per = load_trajectories(path, with_per_trajectory=True)
         return td, {**meta, "path": str(path), "per_trajectory": per}
 
-    jobs = [(g, e) for g in range(len(GROUPS)) for e in range(episodes_per_group)]
+    jobs = [(GROUPS.index(g), e) for g in config["groups"] for e in range(episodes_per_group)]
     start = time.perf_counter()
     episodes = _generate(task, jobs, config, progress=progress, num_workers=num_workers)
     seconds = time.perf_counter() - start
     episodes.sort(key=lambda ep: (ep["group"], ep["episode"]))
     td, per = _to_trajectories(episodes, max_steps)
+    # per["group"] indexes meta["groups"] (the selected groups), as dataset_stats and the benches read it
+    per.set("group", torch.tensor([config["groups"].index(GROUPS[g]) for g in per.get("group").tolist()],
+                                  dtype=torch.int64))
     meta = {
         "env_id": task,
         "domain": "metaworld",
@@ -358,10 +385,11 @@ def format_stats(stats: dict[str, dict]) -> str:
 
 def _generate_for_registry(env: str, *, episodes_per_group: int = 100, noise: float = 1.0, seed: int = 0,
                            max_steps: int = METAWORLD_MAX_EPISODE_STEPS, out: str | None = None,
-                           progress: bool = True, num_workers: int = 1) -> tuple[TensorDict, dict]:
+                           progress: bool = True, num_workers: int = 1,
+                           groups: "list[str] | tuple[str, ...]" = GROUPS) -> tuple[TensorDict, dict]:
     return make_metaworld_dataset(env, episodes_per_group=episodes_per_group, noise=noise, seed=seed,
                                   max_steps=max_steps, cache_dir=out, progress=progress,
-                                  num_workers=num_workers)
+                                  num_workers=num_workers, groups=groups)
 
 
 register_dataset_generator(

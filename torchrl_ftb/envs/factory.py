@@ -22,7 +22,7 @@ Example:
 from __future__ import annotations
 
 import functools
-from typing import Callable, Literal
+from typing import Any, Callable, Literal
 
 import torch
 from tensordict import TensorDictBase
@@ -150,7 +150,7 @@ def _metaworld_reward(task: str, observation: torch.Tensor, action: torch.Tensor
     return metaworld_true_reward(task, observation, action)[0]
 
 
-def true_reward_fn(name: str) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor]:
+def true_reward_fn(name: str, *, with_success: bool = False) -> Callable[[torch.Tensor, torch.Tensor], Any]:
     """Ground-truth reward ``fn(observation, action) -> reward [..., 1]`` of ``name``'s env.
 
     Toy: :func:`torchrl_ftb.testing.toy_reward` (closed form). Meta-World:
@@ -159,8 +159,11 @@ def true_reward_fn(name: str) -> Callable[[torch.Tensor, torch.Tensor], torch.Te
     :func:`locomotion_true_reward` (exact, per transition). Meant for statistics, e.g.
     ``FlowToBetter(..., true_reward_fn=true_reward_fn(name))``.
 
+    ``with_success=True`` (Meta-World only): ``fn`` returns ``(reward, success)`` from the same
+    simulator pass, for the stop-rule cut of ``FlowToBetter(true_return_streak=...)``.
+
     Raises:
-        ValueError: unknown name.
+        ValueError: unknown name; ``with_success`` for an env without a success signal.
 
     Example:
         >>> import torch
@@ -168,6 +171,11 @@ def true_reward_fn(name: str) -> Callable[[torch.Tensor, torch.Tensor], torch.Te
         torch.Size([5, 1])
     """
     kind = env_kind(name)
+    if with_success:
+        if kind != "metaworld":
+            raise ValueError(f"true_reward_fn({name!r}, with_success=True): only Meta-World envs have a per-step "
+                             "success signal")
+        return functools.partial(metaworld_true_reward, name)
     if kind == "toy":
         from torchrl_ftb.testing import toy_reward
 

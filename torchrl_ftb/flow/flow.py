@@ -60,7 +60,7 @@ from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.data.replay_buffers import RandomSampler
 from tqdm.auto import tqdm
 
-from torchrl_ftb.data import trajectories_to_flat, validate_trajectories
+from torchrl_ftb.data import stop_rule_fill, success_streak_length, trajectories_to_flat, validate_trajectories
 from torchrl_ftb.diffusion.normalizer import TrajectoryNormalizer
 from torchrl_ftb.preference import (
     ScoreModel, make_blocks, normalized_scores, score_trajectories, with_normalized_scores,
@@ -163,7 +163,11 @@ def default_min_length(trajs: TensorDictBase) -> int:
 
 
 def masked_true_returns(
-    trajs: TensorDictBase, true_reward_fn: Callable, *, horizons: tuple[int | None, ...] = (None,)
+    trajs: TensorDictBase,
+    true_reward_fn: Callable,
+    *,
+    horizons: tuple[int | None, ...] = (None,),
+    streaks: tuple[int | None, ...] | None = None,
 ) -> torch.Tensor:
     """True returns of each trajectory under one or more definitions, ``float64 [N, len(horizons)]``.
 
@@ -176,6 +180,12 @@ def masked_true_returns(
     success ends the episode, so a faster success earns more). Generated trajectories carry no
     termination flag, so the fill is only meaningful on tasks without terminal states.
 
+    ``streaks`` (one entry per horizon, ``None``: no cut) first cuts each trajectory where a
+    stop rule of that many consecutive successes would have ended it
+    (:func:`~torchrl_ftb.data.success_streak_length`): recorded episodes were cut there,
+    generated ones were not. It needs a ``true_reward_fn`` that returns ``(reward, success)``
+    (e.g. ``torchrl_ftb.envs.true_reward_fn(task, with_success=True)``).
+
     Example:
         >>> from torchrl_ftb.testing import make_toy_dataset, toy_reward
         >>> data = make_toy_dataset(num_trajectories=3, horizon=5, seed=0)
@@ -184,16 +194,37 @@ def masked_true_returns(
     """
     if any(h is not None and h < 1 for h in horizons):
         raise ValueError(f"masked_true_returns: every horizon must be None or >= 1, got {horizons}")
-    lengths = trajs.get("mask").sum(-1).tolist()
+    streaks = (None,) * len(horizons) if streaks is None else tuple(streaks)
+    if len(streaks) != len(horizons) or any(k is not None and k < 1 for k in streaks):
+        raise ValueError(f"masked_true_returns: streaks needs one entry (None or >= 1) per horizon, got "
+                         f"{streaks} for horizons {horizons}")
+    need_success = any(k is not None for k in streaks)
+    mask = trajs.get("mask")
     obs, act = trajs.get("observation"), trajs.get("action")
-    out = torch.zeros(len(lengths), len(horizons), dtype=torch.float64)
-    for i, n in enumerate(lengths):
+    reward = torch.zeros(mask.shape, dtype=torch.float64)
+    success = torch.zeros(mask.shape, dtype=torch.bool)
+    for i, n in enumerate(mask.sum(-1).tolist()):
         if not n:
             continue
-        reward = torch.as_tensor(true_reward_fn(obs[i, :n], act[i, :n])).double().reshape(-1)
-        for j, horizon in enumerate(horizons):
-            out[i, j] = reward.sum() + (0 if horizon is None else max(horizon - n, 0) * reward[-1])
-    return out
+        out = true_reward_fn(obs[i, :n], act[i, :n])
+        if isinstance(out, tuple):
+            out, succ = out
+            success[i, :n] = torch.as_tensor(succ).reshape(-1).bool().cpu()
+        elif need_success:
+            raise ValueError("masked_true_returns: streaks= needs a true_reward_fn that returns (reward, success), "
+                             f"got one that returns {type(out).__name__}")
+        reward[i, :n] = torch.as_tensor(out).double().reshape(-1).cpu()
+    mask = mask.cpu()
+    position = torch.arange(mask.shape[-1])
+    cols = []
+    for horizon, streak in zip(horizons, streaks):
+        m = mask if streak is None else mask & (position < success_streak_length(success, mask, streak=streak)[:, None])
+        ret = (reward * m).sum(-1)
+        if horizon is not None:  # the one fill definition (stop_rule_fill), in float64
+            last, weight = stop_rule_fill(m, horizon=horizon)
+            ret = ret + weight * reward.gather(-1, last[:, None]).squeeze(-1)
+        cols.append(ret)
+    return torch.stack(cols, -1) if cols else torch.zeros(mask.shape[0], 0, dtype=torch.float64)
 
 
 def masked_true_return(trajs: TensorDictBase, true_reward_fn: Callable, *, horizon: int | None = None) -> torch.Tensor:
@@ -291,6 +322,11 @@ class FlowToBetter(nn.Module):
             steps (:func:`masked_true_returns`; ``true_return_filled_*`` statistics), e.g. 500 on
             Meta-World, where a success ends the episode and the plain sum pays a slow success
             more than a fast one. ``None`` (default): the plain sum only.
+        true_return_streak: with ``true_return_horizon``, also report the fill after cutting each
+            trajectory where a stop rule of this many consecutive successes would have ended it
+            (``true_return_filled_stop_rule_*``; 25 on our Meta-World data, whose episodes were
+            cut so, while samples are not). Needs a ``true_reward_fn`` returning
+            ``(reward, success)``. ``None`` (default): no such column.
         candidates: samples drawn per condition in each flow step; the valid one the score model
             ranks highest is the step's proposal (best-of-n). 1 (default): Alg. 4's single sample.
             The score model is the filter either way, so more candidates trade sampling time
@@ -327,6 +363,7 @@ class FlowToBetter(nn.Module):
         normalizer: Any | None = None,
         true_reward_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
         true_return_horizon: int | None = None,
+        true_return_streak: int | None = None,
         candidates: int = 1,
         batch_size: int = 256,
         seed: int = 0,
@@ -353,6 +390,9 @@ class FlowToBetter(nn.Module):
         if true_return_horizon is not None and (true_reward_fn is None or true_return_horizon < 1):
             raise ValueError("FlowToBetter: true_return_horizon needs a true_reward_fn and must be >= 1, got "
                              f"{true_return_horizon}")
+        if true_return_streak is not None and (true_return_horizon is None or true_return_streak < 1):
+            raise ValueError("FlowToBetter: true_return_streak needs a true_return_horizon and must be >= 1, got "
+                             f"{true_return_streak}")
         if ensemble_rule not in ("mean", "all"):
             raise ValueError(f"FlowToBetter: ensemble_rule must be 'mean' or 'all', got {ensemble_rule!r}")
         if ensemble_rule == "all" and getattr(score_model, "num_members", 1) < 2:
@@ -374,9 +414,15 @@ class FlowToBetter(nn.Module):
         self.normalizer = normalizer
         self.true_reward_fn = true_reward_fn
         self.true_return_horizon = true_return_horizon
-        # (statistics name, horizon) of each true-return column: the plain sum, and the fill when asked for
-        self._true_columns = (("true_return", None),) + (
-            () if true_return_horizon is None else (("true_return_filled", int(true_return_horizon)),))
+        self.true_return_streak = true_return_streak
+        # (statistics name, horizon, streak) of each true-return column: the plain sum, the fill when
+        # asked for, and the fill after the stop-rule cut when asked for
+        self._true_columns = (("true_return", None, None),)
+        if true_return_horizon is not None:
+            self._true_columns += (("true_return_filled", int(true_return_horizon), None),)
+            if true_return_streak is not None:
+                self._true_columns += (("true_return_filled_stop_rule", int(true_return_horizon),
+                                        int(true_return_streak)),)
         self.candidates = int(candidates)
         self.batch_size = int(batch_size)
         self.seed = int(seed)
@@ -494,7 +540,8 @@ class FlowToBetter(nn.Module):
         """``[N, D]`` true returns, one column per entry of ``_true_columns`` (one oracle pass)."""
         if self.true_reward_fn is None:
             return None
-        return masked_true_returns(trajs, self.true_reward_fn, horizons=tuple(h for _, h in self._true_columns))
+        return masked_true_returns(trajs, self.true_reward_fn, horizons=tuple(h for _, h, _ in self._true_columns),
+                                   streaks=tuple(k for _, _, k in self._true_columns))
 
     # -- main -----------------------------------------------------------------------------
     def forward(
@@ -590,7 +637,7 @@ class FlowToBetter(nn.Module):
                     row["domain_valid_rate"] = float(domain_valid.double().mean())
                 row.update(extra)
                 if cur_true is not None:
-                    for j, (name, _) in enumerate(self._true_columns):
+                    for j, (name, _, _) in enumerate(self._true_columns):
                         row.update({f"{name}_mean": float(cur_true[:, j].mean()),
                                     f"{name}_max": float(cur_true[:, j].max())})
                     if true_gain is not None:  # did the accepted samples beat what they replaced?
@@ -634,10 +681,12 @@ class FlowToBetter(nn.Module):
         true1 = None
         if true0 is not None:
             true1 = torch.cat([true0, *pool_true])[keep]
-            for j, (name, _) in enumerate(self._true_columns):
+            for j, (name, _, _) in enumerate(self._true_columns):
                 summary.update(return_summary(true0[:, j], true1[:, j], prefix=name))
             if self.true_return_horizon is not None:
                 summary["true_return_horizon"] = float(self.true_return_horizon)
+            if self.true_return_streak is not None:
+                summary["true_return_streak"] = float(self.true_return_streak)
         filled = self.true_return_horizon is not None and true0 is not None
         return FlowResult(
             trajectories=final,
