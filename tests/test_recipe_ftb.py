@@ -332,3 +332,17 @@ def test_physical_validity_checks_compose():
     assert v["contactless_object_path_generated"] != v["contactless_object_path_generated"]  # NaN
     assert v["hand_model_error_generated"] > 0
 
+
+
+def test_final_table_reports_the_stop_rule_cut_beside_the_fill():
+    recipe = _recipe()
+    flow = {"score_mean_before": 0.0, "score_mean_after": 0.0, "flow_steps_run": 1, "flow_steps_planned": 1,
+            "fraction_generated_in_final": 0.5, "true_return_mean_before": 1.0, "true_return_mean_after": 2.0,
+            "true_return_horizon": 500.0, "true_return_filled_mean_before": 10.0, "true_return_filled_mean_after": 12.0}
+    metrics = {"env": "x", "preset": "cpu", "teacher": "success", "wall_time_s": 1.0, "score_quality": {},
+               "eval": {"return_mean": 0.0, "return_std": 0.0, "length_mean": 1.0}, "flow": flow}
+    assert not any("stop-rule cut" in k for k, _ in recipe.final_table(metrics))
+    flow.update(true_return_streak=25.0, true_return_filled_stop_rule_mean_before=10.0,
+                true_return_filled_stop_rule_mean_after=11.0)
+    rows = dict(recipe.final_table(metrics))
+    assert rows["the same after the stop-rule cut (25 successes): before -> after"] == "10 -> 11"
