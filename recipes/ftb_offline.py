@@ -64,7 +64,7 @@ from torchrl_ftb.envs import (
     physics_limit,
     true_reward_fn,
 )
-from torchrl_ftb.flow import FlowToBetter
+from torchrl_ftb.flow import FlowToBetter, true_return_score
 from torchrl_ftb.policy import (
     evaluate_policy,
     load_bc_checkpoint,
@@ -87,6 +87,8 @@ from torchrl_ftb.preference import (
 )
 from torchrl_ftb.provenance import git_commit, machine_info, make_logger, write_json
 
+#: flow.filter: what ranks the top-k, accepts samples and ranks the final set (true_return: an oracle bound)
+FLOW_FILTERS = ("score_model", "true_return")
 STAGES = ("dataset", "labels", "score_model", "blocks", "diffuser", "flow", "bc", "eval")
 # config entries that may change between a killed run and its resume
 RESUME_FREE_KEYS = ("resume", "overwrite", "redo_from", "stop_after", "progress", "logger", "device", "run_dir",
@@ -110,7 +112,7 @@ def _comparable(cfg: DictConfig) -> dict:
 
 
 #: options added after runs were saved, with the value that reproduces the older behaviour
-_ADDED_OPTION_NOOPS = {"score_model.num_members": 1, "flow.ensemble_rule": "mean"}
+_ADDED_OPTION_NOOPS = {"score_model.num_members": 1, "flow.ensemble_rule": "mean", "flow.filter": "score_model"}
 
 
 def _diff_keys(a: Any, b: Any, prefix: str = "") -> list[str]:
@@ -382,6 +384,14 @@ def metaworld_validity(generated: TensorDictBase, data: TensorDictBase) -> dict[
     return out
 
 
+def flow_filter(cfg: DictConfig) -> str:
+    """``flow.filter``: ``score_model`` (FTB: s_psi) or ``true_return`` (an oracle bound, not PbRL)."""
+    value = str(cfg.flow.get("filter", "score_model"))
+    if value not in FLOW_FILTERS:
+        raise ValueError(f"flow.filter={value!r}: choose one of {list(FLOW_FILTERS)}")
+    return value
+
+
 def stage_flow(cfg, run: RunDir, trajs, scores, block_ids, sampler, model, true_reward_fn, logger) -> dict:
     path = run.ckpt / "flow.pt"
     if run.done("flow"):
@@ -392,6 +402,10 @@ def stage_flow(cfg, run: RunDir, trajs, scores, block_ids, sampler, model, true_
         return {**out, **{k: ckpt.get(k) for k in keys}}
     f = cfg.flow
     validity_fn, limits = physical_validity_fn(f, trajs)
+    if flow_filter(cfg) == "true_return":  # the oracle filter: top-k, acceptance, final ranking by true return
+        model = true_return_score(true_reward_fn, horizon=_optional_int(f.get("true_return_horizon")),
+                                  streak=_optional_int(f.get("true_return_streak")))
+        scores = block_ids = None  # the flow ranks and blocks the dataset by the oracle itself
     flow = FlowToBetter(
         sampler, model, top_k=int(f.top_k), threshold=float(f.threshold), num_blocks=int(cfg.blocks.num_blocks),
         flow_steps=None if f.flow_steps is None else int(f.flow_steps),
@@ -458,6 +472,9 @@ def _fmt(v: Any) -> str:
 def final_table(metrics: dict) -> list[tuple[str, str]]:
     ev, fl = metrics["eval"], metrics["flow"]
     rows = [("env", metrics["env"]), ("preset", metrics["preset"]), ("teacher", metrics["teacher"])]
+    oracle = metrics.get("flow_filter", "score_model") == "true_return"
+    if oracle:
+        rows.append(("flow filter", "true return (oracle bound: not preference-based)"))
     if "success_rate" in ev:
         rows.append(("success rate (FTB policy)", _fmt(ev["success_rate"])))
     if "normalized_score" in ev:
@@ -466,7 +483,8 @@ def final_table(metrics: dict) -> list[tuple[str, str]]:
     rows += [
         ("return (FTB policy)", f"{ev['return_mean']:.4g} ± {ev['return_std']:.3g}"),
         ("episode length", _fmt(ev["length_mean"])),
-        ("score s_psi top-k: before -> after", f"{fl['score_mean_before']:.4g} -> {fl['score_mean_after']:.4g}"),
+        (f"{'filter score (true return)' if oracle else 'score s_psi'} top-k: before -> after",
+         f"{fl['score_mean_before']:.4g} -> {fl['score_mean_after']:.4g}"),
     ]
     if "true_return_mean_before" in fl:
         rows.append(("true return top-k: before -> after",
@@ -546,6 +564,9 @@ def run(cfg: DictConfig) -> dict:
             raise ValueError(f"{key} is the stop-rule fill for tasks without terminal states (Meta-World); "
                              f"env.name={cfg.env.name!r} episodes terminate (falls) and the diffuser's samples carry "
                              f"no termination flag: leave it null")
+    if flow_filter(cfg) == "true_return" and not cfg.flow.true_reward:
+        raise ValueError("flow.filter=true_return ranks and accepts by the ground-truth return: it needs "
+                         "flow.true_reward=true")
     if cfg.flow.get("true_return_streak") is not None:
         if kind != "metaworld":
             raise ValueError(f"flow.true_return_streak is the Meta-World stop rule's cut; env.name={cfg.env.name!r} "
@@ -711,7 +732,8 @@ def run(cfg: DictConfig) -> dict:
 
     metrics = {
         "env": cfg.env.name, "preset": cfg.preset, "teacher": teacher.name, "seed": int(cfg.seed),
-        "eval": ev, "flow": summary, "flow_stats": flow["stats"], "score_quality": quality,
+        "eval": ev, "flow": summary, "flow_filter": flow_filter(cfg), "flow_stats": flow["stats"],
+        "score_quality": quality,
         "diffuser": diffuser_summary, "bc": bc_summary, "analysis": analysis,
         "stage_time_s": timings, "wall_time_s": time.perf_counter() - t_start,
         "git_commit": git_commit(), "machine": machine_info(),

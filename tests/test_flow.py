@@ -18,6 +18,7 @@ from torchrl_ftb.flow import (
     masked_true_returns,
     normalized_scores,
     trajectory_validity,
+    true_return_score,
 )
 from torchrl_ftb.preference import NORMALIZED_SCORE_KEY, ScoreModel
 from torchrl_ftb.testing import make_toy_dataset, toy_reward
@@ -322,6 +323,33 @@ def test_flow_reports_the_filled_true_return_beside_the_plain_one():
     assert {"true_return_filled_mean", "true_return_filled_max", "true_return_mean"} <= set(res.stats[0])
     with pytest.raises(ValueError, match="true_return_horizon"):
         FlowToBetter(_shift_sampler(0.2), _sum_ax, top_k=8, flow_steps=1, true_return_horizon=10)
+
+
+def test_oracle_filter_starts_from_the_true_top_k_and_keeps_only_true_gains():
+    data = make_toy_dataset(num_trajectories=40, horizon=H, seed=1)
+    oracle = true_return_score(toy_reward)
+
+    def push_x_and_swerve(cond):  # raises sum(a_x) always; swerving (a_y = 0.9) costs more on half of them
+        out = cond.select("observation", "action", "mask").clone()
+        act = out["action"].clone()
+        act[..., 0] = (act[..., 0] + 0.3).clamp(-1, 1)
+        act[1::2, :, 1] = 0.9
+        out["action"] = act * out["mask"][..., None]
+        return out
+
+    sampler = TensorDictModule(push_x_and_swerve, ["condition"], ["sample"])
+    kw = dict(top_k=8, threshold=1.0, flow_steps=2, progress=False, true_reward_fn=toy_reward, early_stop_fraction=0.0)
+    res = FlowToBetter(sampler, oracle, **kw)(data)
+    true_all = masked_true_return(data, toy_reward)
+    assert set(res.original_indices.tolist()) == set(true_all.argsort(descending=True)[:8].tolist())
+    assert torch.allclose(res.scores, res.true_returns, atol=1e-6)  # the filter's score is the true return
+    gained = [row["accepted_true_gain_positive"] for row in res.stats if "accepted_true_gain_positive" in row]
+    assert gained and all(g == 1.0 for g in gained)
+    assert res.summary["true_return_mean_after"] >= res.summary["true_return_mean_before"]
+    # an imperfect filter (sum of a_x, blind to the swerve) lets true losses in; its top-k is no better
+    stand_in = FlowToBetter(sampler, _sum_ax, **kw)(data)
+    assert min(row["accepted_true_gain_positive"] for row in stand_in.stats) < 1.0
+    assert res.summary["true_return_mean_before"] >= stand_in.summary["true_return_mean_before"] - 1e-6
 
 
 def test_analysis_metrics_and_plots(tmp_path):

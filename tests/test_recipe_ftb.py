@@ -136,6 +136,25 @@ def test_kill_during_diffuser_training_then_resume_end_to_end(tmp_path):
     with pytest.raises(ValueError, match="not a stage"):
         recipe.run(_cfg(run_dir, "resume=true", "redo_from=sampling"))
 
+    # the oracle filter (flow.filter=true_return): the top-k, the acceptance and the final ranking
+    # by the true return (here the 32-step fill), an upper bound labelled as such, not PbRL
+    flow_kw = ("flow.threshold=1.01", "diffuser.guidance=2.0", "flow.true_return_horizon=32")
+    oracle = recipe.run(_cfg(run_dir, "resume=true", "redo_from=flow", *flow_kw, "flow.filter=true_return"))
+    assert oracle["flow_filter"] == "true_return" and redone["flow_filter"] == "score_model"
+    fo, fs = oracle["flow"], redone["flow"]
+    assert fo["score_mean_before"] == pytest.approx(fo["true_return_filled_mean_before"])  # one definition
+    assert fo["score_mean_after"] == pytest.approx(fo["true_return_filled_mean_after"])
+    # the true top-k holds at least the true return of s_psi's top-k, and the final set never loses it
+    assert fo["true_return_filled_mean_before"] >= fs["true_return_filled_mean_before"] - 1e-6
+    assert fo["true_return_filled_max_before"] >= fs["true_return_filled_max_before"] - 1e-6
+    assert fo["true_return_filled_mean_after"] >= fo["true_return_filled_mean_before"] - 1e-6
+    assert "true return (oracle bound" in (run_dir / "report.md").read_text()
+    with pytest.raises(ValueError, match="flow.filter='best': choose one of"):
+        recipe.run(_cfg(run_dir, "resume=true", "redo_from=flow", *flow_kw, "flow.filter=best"))
+    with pytest.raises(ValueError, match="flow.filter=true_return .* needs flow.true_reward=true"):
+        recipe.run(_cfg(tmp_path / "oracle", "flow.filter=true_return", "flow.true_reward=false"))
+    assert not (tmp_path / "oracle").exists()
+
     # the score model's observation normaliser: on by default (fitted buffers saved), off
     # when asked (redo_from=score_model lets that section change)
     score_ckpt = run_dir / "checkpoints" / "score_model.pt"

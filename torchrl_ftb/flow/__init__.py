@@ -11,6 +11,7 @@ from torchrl_ftb.flow.flow import (
     normalized_scores,
     return_summary,
     trajectory_validity,
+    true_return_score,
 )
 
 __all__ = [
@@ -25,4 +26,5 @@ __all__ = [
     "normalized_scores",
     "return_summary",
     "trajectory_validity",
+    "true_return_score",
 ]

@@ -69,6 +69,7 @@ from torchrl_ftb.preference import (
 __all__ = [
     "FlowToBetter", "FlowResult", "adaptive_flow_steps", "clip_actions", "default_min_length", "improves",
     "masked_true_return", "masked_true_returns", "normalized_scores", "return_summary", "trajectory_validity",
+    "true_return_score",
 ]
 
 TRAJ_KEYS = ("observation", "action", "mask")
@@ -241,6 +242,32 @@ def masked_true_return(trajs: TensorDictBase, true_reward_fn: Callable, *, horiz
         True
     """
     return masked_true_returns(trajs, true_reward_fn, horizons=(horizon,))[:, 0]
+
+
+def true_return_score(
+    true_reward_fn: Callable, *, horizon: int | None = None, streak: int | None = None
+) -> Callable[[TensorDictBase], torch.Tensor]:
+    """An oracle ``score_model`` for :class:`FlowToBetter`: each trajectory's true return.
+
+    The flow then picks its top-k, accepts samples and ranks the final set by the ground truth
+    instead of ``s_psi`` (the same ratio rule on the dataset-normalised return). This is an
+    analysis tool, not preference-based RL: it bounds what the diffuser's samples allow when
+    the filter makes no mistake. ``horizon`` / ``streak``: the return definition of
+    :func:`masked_true_returns` (one column).
+
+    Example:
+        >>> from torchrl_ftb.testing import make_toy_dataset, toy_reward
+        >>> data = make_toy_dataset(num_trajectories=3, horizon=5, seed=0)
+        >>> score = true_return_score(toy_reward)
+        >>> bool(torch.allclose(score(data), masked_true_return(data, toy_reward)))
+        True
+    """
+    horizons, streaks = (horizon,), (streak,)
+
+    def score(trajs: TensorDictBase) -> torch.Tensor:
+        return masked_true_returns(trajs, true_reward_fn, horizons=horizons, streaks=streaks)[:, 0]
+
+    return score
 
 
 def return_summary(before: torch.Tensor, after: torch.Tensor, *, prefix: str = "true_return") -> dict[str, float]:
