@@ -21,7 +21,8 @@ ground-truth oracle (:func:`torchrl_ftb.flow.masked_true_returns`) under two ret
 the plain sum and the stop-rule fill to ``H`` steps (a success ends a Meta-World episode, so
 the plain sum pays a slow success more than a fast one) -- on Meta-World also the fill after cutting
 each trajectory where the data's stop rule (25 consecutive successes) would have ended it, since
-generated trajectories are not cut by it -- and the same again with the final
+generated trajectories are not cut by it, and a generated one that ends early without that streak is
+not filled there (no stop rule ended it) -- and the same again with the final
 set's generated trajectories that fail any of the three checks replaced by the originals they
 displaced: the improvement target (issue #5) on runs made before the recipe reported the fill
 (``flow.true_return_horizon``).

@@ -269,9 +269,10 @@ def test_true_return_stop_rule_fill_pays_a_faster_success_more():
 
 def test_stop_rule_cut_scores_a_sample_as_if_its_episode_had_stopped():
     # per-step reward = the action, success = reward >= 5; a stop rule of 2 consecutive successes
-    td = TensorDict({"observation": torch.zeros(2, 6, 1), "action": torch.tensor([[1., 5., 6., 7., 8., 9.],
-                                                                                   [1., 5., 1., 5., 6., 2.]])[..., None],
-                     "mask": torch.tensor([[True] * 6, [True] * 5 + [False]])}, [2, 6])
+    td = TensorDict({"observation": torch.zeros(3, 6, 1), "action": torch.tensor([[1., 5., 6., 7., 8., 9.],
+                                                                                   [1., 5., 1., 5., 6., 2.],
+                                                                                   [1., 5., 1., 5., 1., 0.]])[..., None],
+                     "mask": torch.tensor([[True] * 6, [True] * 5 + [False], [True] * 5 + [False]])}, [3, 6])
 
     def reward_and_success(o, a):
         r = a.sum(-1)
@@ -282,9 +283,12 @@ def test_stop_rule_cut_scores_a_sample_as_if_its_episode_had_stopped():
     assert cols[0].tolist() == [36.0, 36.0, 12.0 + 3 * 6.0]
     # row 1: its streak (5, 6) ends at its 5th step: the cut keeps all 5 steps; fill 1 step of 6
     assert cols[1].tolist() == [18.0, 24.0, 24.0]
+    # row 2: it ends early with no streak (a generated length, not a stop): the plain fill pays its last
+    # reward for the missing step as if it had succeeded; the stop-rule column does not
+    assert cols[2].tolist() == [13.0, 14.0, 13.0]
     # a plain reward function still works without streaks, and is refused with them
     reward = lambda o, a: a.sum(-1)  # noqa: E731
-    assert masked_true_returns(td, reward, horizons=(None,))[:, 0].tolist() == [36.0, 18.0]
+    assert masked_true_returns(td, reward, horizons=(None,))[:, 0].tolist() == [36.0, 18.0, 13.0]
     with pytest.raises(ValueError, match=r"streaks= needs a true_reward_fn that returns \(reward, success\)"):
         masked_true_returns(td, reward, horizons=(6,), streaks=(2,))
     with pytest.raises(ValueError, match="one entry"):

@@ -10,6 +10,7 @@ from torchrl_ftb.data import (
     load_trajectories,
     pad_trajectories,
     save_trajectories,
+    success_streak_fired,
     success_streak_length,
     trajectories_to_flat,
     trajectory_lengths,
@@ -131,16 +132,21 @@ def test_success_streak_length_is_the_generators_stop_rule():
     lengths = torch.randint(0, 31, (64,), generator=gen)
     mask = torch.arange(30) < lengths[:, None]
     got = success_streak_length(success, mask, streak=4)
+    fired = success_streak_fired(success, mask, streak=4)
     for i in range(64):
-        run, want = 0, int(lengths[i])
+        run, want, want_fired = 0, int(lengths[i]), False
         for h in range(int(lengths[i])):
             run = run + 1 if bool(success[i, h]) else 0
             if run == 4:
-                want = h + 1
+                want, want_fired = h + 1, True
                 break
-        assert int(got[i]) == want, i
+        assert int(got[i]) == want and bool(fired[i]) == want_fired, i
+    assert 0 < int(fired.sum()) < 64  # both cases occur
     # successes in the padding do not complete a streak
     assert success_streak_length(torch.ones(1, 6, dtype=torch.bool), torch.arange(6)[None] < 3, streak=4).tolist() == [3]
+    # ... nor make the rule fire
+    assert success_streak_fired(torch.ones(1, 6, dtype=torch.bool), torch.arange(6)[None] < 3, streak=4).tolist() == [False]
+    assert success_streak_fired(torch.ones(1, 6, dtype=torch.bool), torch.arange(6)[None] < 4, streak=4).tolist() == [True]
     with pytest.raises(ValueError, match="streak must be >= 1"):
         success_streak_length(success, mask, streak=0)
     with pytest.raises(ValueError, match="differ in shape"):

@@ -127,21 +127,40 @@ def success_streak_length(success: torch.Tensor, mask: torch.Tensor, *, streak: 
         >>> success_streak_length(success, torch.ones(2, 5, dtype=torch.bool), streak=2)
         tensor([3, 5])
     """
+    first = _first_streak_end(success, mask, streak=streak)
+    return torch.where(first < mask.shape[-1], first + 1, mask.long().sum(-1))
+
+
+def success_streak_fired(success: torch.Tensor, mask: torch.Tensor, *, streak: int) -> torch.Tensor:
+    """Whether the success-streak stop rule ends each trajectory (``bool [*B]``).
+
+    A recorded episode shorter than its time limit always ended this way; a generated trajectory
+    may end early without it (its length is where the diffuser's padding starts), and then no
+    stop rule ended it: the stop-rule fill (:func:`stop_rule_fill`) does not apply to it.
+
+    Example:
+        >>> success = torch.tensor([[False, True, True, False], [True, False, True, False]])
+        >>> success_streak_fired(success, torch.ones(2, 4, dtype=torch.bool), streak=2)
+        tensor([ True, False])
+    """
+    return _first_streak_end(success, mask, streak=streak) < mask.shape[-1]
+
+
+def _first_streak_end(success: torch.Tensor, mask: torch.Tensor, *, streak: int) -> torch.Tensor:
+    """Index of the step completing the first ``streak`` consecutive valid successes (``H``: none)."""
     if streak < 1:
-        raise ValueError(f"success_streak_length: streak must be >= 1, got {streak}")
+        raise ValueError(f"success streak: streak must be >= 1, got {streak}")
     if success.shape != mask.shape:
-        raise ValueError(f"success_streak_length: success {tuple(success.shape)} and mask {tuple(mask.shape)} "
+        raise ValueError(f"success streak: success {tuple(success.shape)} and mask {tuple(mask.shape)} "
                          "differ in shape")
     ok = (success.bool() & mask.bool()).long()
     # run[h] = consecutive successes ending at h: cumulative count minus the count at the last failure
     count = ok.cumsum(-1)
     at_failure = torch.where(ok.bool(), torch.zeros_like(count), count)
     run = count - at_failure.cummax(-1).values
-    done = run >= streak
     steps = mask.shape[-1]
-    first = torch.where(done, torch.arange(steps, device=mask.device).expand_as(done),
-                        torch.full_like(count, steps)).amin(-1)
-    return torch.where(first < steps, first + 1, mask.long().sum(-1))
+    return torch.where(run >= streak, torch.arange(steps, device=mask.device).expand_as(run),
+                       torch.full_like(count, steps)).amin(-1)
 
 
 def validate_trajectories(

@@ -60,7 +60,9 @@ from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.data.replay_buffers import RandomSampler
 from tqdm.auto import tqdm
 
-from torchrl_ftb.data import stop_rule_fill, success_streak_length, trajectories_to_flat, validate_trajectories
+from torchrl_ftb.data import (
+    stop_rule_fill, success_streak_fired, success_streak_length, trajectories_to_flat, validate_trajectories,
+)
 from torchrl_ftb.diffusion.normalizer import TrajectoryNormalizer
 from torchrl_ftb.preference import (
     ScoreModel, make_blocks, normalized_scores, score_trajectories, with_normalized_scores,
@@ -184,8 +186,12 @@ def masked_true_returns(
     ``streaks`` (one entry per horizon, ``None``: no cut) first cuts each trajectory where a
     stop rule of that many consecutive successes would have ended it
     (:func:`~torchrl_ftb.data.success_streak_length`): recorded episodes were cut there,
-    generated ones were not. It needs a ``true_reward_fn`` that returns ``(reward, success)``
-    (e.g. ``torchrl_ftb.envs.true_reward_fn(task, with_success=True)``).
+    generated ones were not. Such a column fills only the trajectories that rule ended: a recorded
+    episode ends by it or by the time limit, while a generated one may end early with no streak (where
+    the diffuser's padding starts); filling that one would pay a failure as if it had succeeded, so it
+    earns its own steps only (:func:`~torchrl_ftb.data.success_streak_fired`). It needs a
+    ``true_reward_fn`` that returns ``(reward, success)`` (e.g.
+    ``torchrl_ftb.envs.true_reward_fn(task, with_success=True)``).
 
     Example:
         >>> from torchrl_ftb.testing import make_toy_dataset, toy_reward
@@ -219,10 +225,13 @@ def masked_true_returns(
     position = torch.arange(mask.shape[-1])
     cols = []
     for horizon, streak in zip(horizons, streaks):
-        m = mask if streak is None else mask & (position < success_streak_length(success, mask, streak=streak)[:, None])
+        m, unfilled = mask, None
+        if streak is not None:  # cut where the rule fires; no fill where it never does (not a stop-rule end)
+            m = mask & (position < success_streak_length(success, mask, streak=streak)[:, None])
+            unfilled = (~success_streak_fired(success, mask, streak=streak))[:, None].expand_as(m)
         ret = (reward * m).sum(-1)
         if horizon is not None:  # the one fill definition (stop_rule_fill), in float64
-            last, weight = stop_rule_fill(m, horizon=horizon)
+            last, weight = stop_rule_fill(m, horizon=horizon, terminated=unfilled)
             ret = ret + weight * reward.gather(-1, last[:, None]).squeeze(-1)
         cols.append(ret)
     return torch.stack(cols, -1) if cols else torch.zeros(mask.shape[0], 0, dtype=torch.float64)
@@ -352,8 +361,9 @@ class FlowToBetter(nn.Module):
         true_return_streak: with ``true_return_horizon``, also report the fill after cutting each
             trajectory where a stop rule of this many consecutive successes would have ended it
             (``true_return_filled_stop_rule_*``; 25 on our Meta-World data, whose episodes were
-            cut so, while samples are not). Needs a ``true_reward_fn`` returning
-            ``(reward, success)``. ``None`` (default): no such column.
+            cut so, while samples are not); a sample that ends early with no such streak gets no
+            fill there. Needs a ``true_reward_fn`` returning ``(reward, success)``. ``None``
+            (default): no such column.
         candidates: samples drawn per condition in each flow step; the valid one the score model
             ranks highest is the step's proposal (best-of-n). 1 (default): Alg. 4's single sample.
             The score model is the filter either way, so more candidates trade sampling time
