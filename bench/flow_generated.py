@@ -191,6 +191,10 @@ def main() -> None:
         return
     if not args.run_dirs:
         parser.error("--run-dirs or --summarize is required")
+    for run in args.run_dirs:  # all of them before any work
+        missing = [name for name in ("config.yaml", "checkpoints/flow.pt") if not (run / name).is_file()]
+        if missing:
+            parser.error(f"{run}: not a finished FTB run directory (no {' or '.join(missing)})")
     record = {**run_record(config={"run_dirs": [str(r) for r in args.run_dirs], "horizon": args.horizon,
                                    "max_frame_stack_error": args.max_frame_stack_error,
                                    "max_hand_model_error": args.max_hand_model_error,

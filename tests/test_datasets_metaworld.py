@@ -176,10 +176,12 @@ def test_expert_replay_keeps_each_episodes_goal_and_start(tiny_dataset):
     plain, filled = bench.returns(short, horizon=5)
     assert plain.tolist() == [3.0, 3.0] and filled.tolist() == [9.0, 5.0]  # the last reward, repeated to 5 steps
     assert bench.match_rows(td["observation"][[2, 0]], td["observation"]).tolist() == [2, 0]
-    # bench/flow_generated.py's oracle returns: on recorded episodes the stop rule cuts nothing, and the
+    # bench/flow_generated.py's oracle returns: on recorded episodes, which end by the stop rule or at the
+    # time limit (150 steps here, the fill's horizon), the stop-rule column equals the filled one, and the
     # oracle's plain / filled returns are the recorded ones (up to the rewarder's approximations)
     flow_bench = load_script(Path(__file__).resolve().parents[1] / "bench" / "flow_generated.py", "bench_flow_generated")
-    oracle = flow_bench.metaworld_returns("button-press-v3", td, horizon=500)
+    oracle = flow_bench.metaworld_returns("button-press-v3", td, horizon=150)
     torch.testing.assert_close(oracle[:, 2], oracle[:, 1])
-    recorded = torch.stack(bench.returns(td, horizon=500), -1)
+    assert bool((oracle[:, 1] > oracle[:, 0]).any())  # some episode stopped early and is filled
+    recorded = torch.stack(bench.returns(td, horizon=150), -1)
     torch.testing.assert_close(oracle[:, :2], recorded, rtol=0.02, atol=0.0)
