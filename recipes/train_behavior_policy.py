@@ -29,7 +29,6 @@ import argparse
 import json
 import platform
 import signal
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -52,6 +51,7 @@ from torchrl_ftb.datasets.locomotion import (
     make_behavior_env,
     save_behavior_policy,
 )
+from torchrl_ftb.provenance import git_commit
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -103,14 +103,6 @@ _STOP = {"requested": False}
 def _request_stop(signum, frame):
     # a flag, not an exception: interrupting a SACLoss call mid-vmap corrupts its state
     _STOP["requested"] = True
-
-
-def git_commit() -> str | None:
-    try:
-        return subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True,
-                              check=True, cwd=Path(__file__).resolve().parent).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return None
 
 
 def main(argv=None) -> dict:

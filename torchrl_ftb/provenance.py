@@ -2,7 +2,8 @@
 
 One home for what every recipe (``recipes/*.py``) and benchmark (``bench/*.py``) writes
 beside its results, plus the torchrl logger the recipes open. Importing this module is
-cheap: ``torch`` and ``torchrl`` are imported only by the functions that need them.
+cheap (one ``git rev-parse``: the commit of the loaded code): ``torch`` and ``torchrl`` are
+imported only by the functions that need them.
 
 Example:
     >>> import tempfile
@@ -33,15 +34,30 @@ __all__ = ["git_commit", "machine_info", "run_record", "write_json", "make_logge
 PACKAGE_DIR = Path(__file__).resolve().parent
 
 
+def _rev_parse(cwd: str | os.PathLike) -> str | None:
+    """``git rev-parse HEAD`` in ``cwd``, or None (no git, not a checkout, no answer within 10 s)."""
+    try:
+        out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=cwd, capture_output=True, text=True, timeout=10)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return (out.stdout.strip() or None) if out.returncode == 0 else None
+
+
+#: the commit checked out when this process imported the package, i.e. the code it runs: a commit
+#: made in the same tree while a long run works (its results are written at the end) is not it
+_LOADED_COMMIT = _rev_parse(PACKAGE_DIR)
+
+
 def git_commit(cwd: str | os.PathLike | None = None) -> str | None:
-    """The commit checked out in ``cwd``: ``git rev-parse HEAD``.
+    """The commit of the code this process runs, or the one checked out in ``cwd``.
 
     Args:
-        cwd: a folder inside the git checkout; default: this package's folder (so the
-            answer does not depend on the caller's working directory).
+        cwd: a folder inside a git checkout, asked now. Default: this package's checkout as it
+            was when the package was imported (a recipe that runs for an hour records the commit
+            it started with, not one made in the tree meanwhile).
 
     Returns:
-        The 40-hex commit, or ``None`` when git is missing, ``cwd`` is not in a checkout,
+        The 40-hex commit, or ``None`` when git is missing, the folder is not in a checkout,
         or git does not answer within 10 s.
 
     Example:
@@ -50,12 +66,7 @@ def git_commit(cwd: str | os.PathLike | None = None) -> str | None:
         >>> commit is None or len(commit) == 40
         True
     """
-    try:
-        out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=PACKAGE_DIR if cwd is None else cwd,
-                             capture_output=True, text=True, timeout=10)
-    except (OSError, subprocess.SubprocessError):
-        return None
-    return (out.stdout.strip() or None) if out.returncode == 0 else None
+    return _LOADED_COMMIT if cwd is None else _rev_parse(cwd)
 
 
 def _cpu_model() -> str | None:
