@@ -15,6 +15,8 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 from tensordict import TensorDict
 
+from torchrl_ftb.data.labels import SuccessTeacher
+from torchrl_ftb.datasets import dataset_kwargs, make_dataset
 from torchrl_ftb.envs import fit_metaworld_contact_reach, metaworld_contactless_object_path
 from torchrl_ftb.testing import load_script
 
@@ -149,6 +151,13 @@ def test_kill_during_diffuser_training_then_resume_end_to_end(tmp_path):
     assert fo["true_return_filled_max_before"] >= fs["true_return_filled_max_before"] - 1e-6
     assert fo["true_return_filled_mean_after"] >= fo["true_return_filled_mean_before"] - 1e-6
     assert "true return (oracle bound" in (run_dir / "report.md").read_text()
+    # the successes row counts the set the flow started from: the oracle's top-k here, s_psi's otherwise
+    flow_ckpt = torch.load(run_dir / "checkpoints" / "flow.pt", weights_only=True)
+    data, _ = make_dataset("toy", **dataset_kwargs("toy", _cfg(run_dir).dataset, max_episode_steps=32, progress=False))
+    ok = SuccessTeacher().succeeded(data).float()
+    assert fo["top_k_success"] == pytest.approx(float(ok[flow_ckpt["original_indices"]].mean()))
+    assert fs["top_k_success"] == pytest.approx(redone["score_quality"]["top_k_success"])
+    assert "successes in the filter's top-k / s_psi's" in (run_dir / "report.md").read_text()
     with pytest.raises(ValueError, match="flow.filter='best': choose one of"):
         recipe.run(_cfg(run_dir, "resume=true", "redo_from=flow", *flow_kw, "flow.filter=best"))
     with pytest.raises(ValueError, match="flow.filter=true_return .* needs flow.true_reward=true"):
