@@ -13,7 +13,11 @@ sample score / true return per condition block next to the dataset's mean of the
 pairs taught it to produce (k + 1), and the mean generated length. ``--pairs copy`` trains on
 pairs whose target *is* the condition (a copy task: can the condition path carry a whole
 trajectory at all?); then the sample should match its condition (``spearman_sample_score_vs_
-condition_score`` near 1), whatever the blocks. JSON to
+condition_score`` near 1), whatever the blocks. ``--top-block`` also samples from conditions of the
+top block (the flow's top-k come from there; the pairs never use it as a condition), with the max
+true return of conditions and samples and the share of samples above their own condition.
+``--horizon 500 --streak 25`` scores the true returns (data and samples) with the stop-rule fill
+after the stop-rule cut, the definition of the flow's ``true_return_filled_stop_rule_*`` statistics. JSON to
 ``bench/results/diffuser_conditioning/<task>-<run>-<tag>.json`` after every evaluation
 (partial results survive a kill). ``--device cuda --autocast-bf16 --max-minutes M`` is the
 GPU check (paper preset) that decides whether our CPU-budget findings are about the budget.
@@ -55,12 +59,18 @@ from torchrl_ftb.provenance import run_record, write_json  # noqa: E402
 
 
 def evaluate(diffuser, model, trajs, scores, ids, *, per_block: int, sampler: str, steps: int, guidance: float,
-             seed: int, returns: torch.Tensor | None = None, reward_fn=None, autocast_bf16: bool = False) -> dict:
-    """Condition-following statistics of one model state (see module docstring)."""
+             seed: int, returns: torch.Tensor | None = None, reward_fn=None, autocast_bf16: bool = False,
+             top_block: bool = False, horizon: int | None = None, streak: int | None = None) -> dict:
+    """Condition-following statistics of one model state (see module docstring).
+
+    ``top_block=True`` also conditions on the top block, which the pairs never use as a condition
+    (no block above it): the flow's top-k come from there. Its entry has no target block (None);
+    the correlations are over the other blocks' conditions, as without it.
+    """
     gen = torch.Generator().manual_seed(seed)
     num_blocks = int(ids.max()) + 1
     picks, blocks = [], []
-    for k in range(num_blocks - 1):
+    for k in range(num_blocks if top_block else num_blocks - 1):
         members = (ids == k).nonzero().squeeze(-1)
         order = torch.randperm(members.numel(), generator=torch.Generator().manual_seed(seed + k))
         chosen = members[order[:per_block]]
@@ -74,24 +84,34 @@ def evaluate(diffuser, model, trajs, scores, ids, *, per_block: int, sampler: st
     s_new = score_trajectories(model, sample).double()
     true_new = None
     if reward_fn is not None and returns is not None:
-        true_new = sample_true_return(sample, reward_fn).double()
+        true_new = sample_true_return(sample, reward_fn, horizon=horizon, streak=streak).double()
     length = sample["mask"].sum(-1).double()
     per = {}
-    for k in range(num_blocks - 1):
-        m = blocks == k
+    for k in range(int(blocks.max()) + 1):
+        m, target = blocks == k, ids == k + 1  # the top block has no target (all False)
+        has_target = bool(target.any())
         per[str(k + 1)] = {"condition_score": float(scores[idx[m]].mean()), "sample_score": float(s_new[m].mean()),
-                           "target_block_score": float(scores[ids == k + 1].mean()),
+                           "target_block_score": float(scores[target].mean()) if has_target else None,
                            "sample_length": float(length[m].mean()),
-                           "target_block_length": float(trajs["mask"][ids == k + 1].sum(-1).double().mean())}
+                           "target_block_length": float(trajs["mask"][target].sum(-1).double().mean())
+                           if has_target else None}
         if true_new is not None:
             per[str(k + 1)].update(condition_true_return=float(returns[idx[m]].mean()),
                                    sample_true_return=float(true_new[m].mean()),
-                                   target_block_true_return=float(returns[ids == k + 1].mean()))
+                                   target_block_true_return=float(returns[target].mean()) if has_target else None,
+                                   condition_true_return_max=float(returns[idx[m]].max()),
+                                   sample_true_return_max=float(true_new[m].max()),
+                                   samples_above_condition=float((true_new[m] > returns[idx[m]]).double().mean()))
+    inner = blocks < num_blocks - 1  # the correlations: blocks that are conditions in training
     extra = {} if true_new is None else {
-        "spearman_sample_true_return_vs_condition_block": spearman(blocks.double(), true_new)}
-    return {**extra, "spearman_sample_score_vs_condition_block": spearman(blocks.double(), s_new),
-            "spearman_sample_score_vs_condition_score": spearman(scores[idx], s_new),
+        "spearman_sample_true_return_vs_condition_block": spearman(blocks[inner].double(), true_new[inner])}
+    return {**extra, "spearman_sample_score_vs_condition_block": spearman(blocks[inner].double(), s_new[inner]),
+            "spearman_sample_score_vs_condition_score": spearman(scores[idx[inner]], s_new[inner]),
             "per_condition_block": per, "num_conditions": int(idx.numel())}
+
+
+def _num(value: float | None) -> str:
+    return "—" if value is None else f"{value:.0f}"  # the top block has no target block
 
 
 def summarize(paths: list[Path]) -> str:
@@ -103,13 +123,15 @@ def summarize(paths: list[Path]) -> str:
             per = ev["per_condition_block"]
             if not rows:
                 rows = ["| file | diffuser steps | Spearman(condition block, sample score / true return) | "
-                        + " | ".join(f"B{k} → sample score (B{int(k) + 1} mean); true return" for k in per) + " |",
+                        + " | ".join(f"B{k} → sample score (B{int(k) + 1} mean); true return"
+                                     if v["target_block_score"] is not None else f"B{k} (top: no target) → sample"
+                                     for k, v in per.items()) + " |",
                         "|---|---|---|" + "---|" * len(per)]
             true_rho = ev.get("spearman_sample_true_return_vs_condition_block")
             rows.append(f"| {path.stem} | {ev['step']} | {ev['spearman_sample_score_vs_condition_block']:+.2f} / "
                         + ("—" if true_rho is None else f"{true_rho:+.2f}") + " | "
-                        + " | ".join(f"{v['sample_score']:.0f} ({v['target_block_score']:.0f})"
-                                     + (f"; {v['sample_true_return']:.0f} ({v['target_block_true_return']:.0f})"
+                        + " | ".join(f"{v['sample_score']:.0f} ({_num(v['target_block_score'])})"
+                                     + (f"; {v['sample_true_return']:.0f} ({_num(v['target_block_true_return'])})"
                                         if "sample_true_return" in v else "") for v in per.values())
                         + " |")
     return "\n".join(rows)
@@ -120,6 +142,12 @@ def main() -> None:
     parser.add_argument("--steps", type=int, help="total diffuser steps to train up to")
     parser.add_argument("--eval-every", type=int, default=1500)
     parser.add_argument("--per-block", type=int, default=8)
+    parser.add_argument("--horizon", type=int, default=None,
+                        help="true returns with the stop-rule fill to this many steps (Meta-World: 500); default plain")
+    parser.add_argument("--streak", type=int, default=None,
+                        help="with --horizon: cut samples where this many consecutive successes would end them (25)")
+    parser.add_argument("--top-block", action="store_true",
+                        help="also condition on the top block (the flow's top-k; no target block above it)")
     parser.add_argument("--sampler", default=None)
     parser.add_argument("--sample-steps", type=int, default=None)
     parser.add_argument("--guidance", type=float, default=None)
@@ -150,9 +178,11 @@ def main() -> None:
         parser.error(f"--override: {err}")
     device = torch.device(args.device or ("cuda" if torch.cuda.is_available() else "cpu"))
     run = args.run_dir
-    cfg, trajs, returns = load_run(run, with_returns=True)
+    if args.streak is not None and args.horizon is None:
+        parser.error("--streak needs --horizon (the stop-rule cut comes before the fill)")
+    cfg, trajs, returns = load_run(run, with_returns=True, horizon=args.horizon)
     name = str(cfg.env.name)
-    reward_fn = true_reward_fn(name)
+    reward_fn = true_reward_fn(name, with_success=args.streak is not None)
     sampler, sample_steps, guidance = sampling_settings(cfg, sampler=args.sampler, steps=args.sample_steps,
                                                         guidance=args.guidance)
     if args.preset is not None:  # a fresh model: its own preset's training numbers
@@ -209,13 +239,14 @@ def main() -> None:
         t0 = time.time()
         ev = evaluate(diffuser, model, trajs, scores, ids, per_block=args.per_block, sampler=sampler,
                       steps=int(sample_steps), guidance=float(guidance), seed=int(cfg.seed), returns=returns,
-                      reward_fn=reward_fn, autocast_bf16=args.autocast_bf16)
+                      reward_fn=reward_fn, autocast_bf16=args.autocast_bf16, top_block=args.top_block,
+                      horizon=args.horizon, streak=args.streak)
         ev.update(step=step, eval_seconds=round(time.time() - t0, 1))
         record["evaluations"].append(ev)
         write_json(out, record)
         print(f"step {step}: spearman(block) {ev['spearman_sample_score_vs_condition_block']:.3f} "
               f"spearman(score) {ev['spearman_sample_score_vs_condition_score']:.3f} "
-              + " ".join(f"B{k}:{v['sample_score']:.0f}/{v['target_block_score']:.0f}"
+              + " ".join(f"B{k}:{v['sample_score']:.0f}/{_num(v['target_block_score'])}"
                          for k, v in ev["per_condition_block"].items()), flush=True)
         out_of_time = args.max_minutes is not None and time.time() - started > 60 * args.max_minutes
         if step >= args.steps or out_of_time:

@@ -33,12 +33,13 @@ from omegaconf import OmegaConf
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from torchrl_ftb.data.labels import true_return  # noqa: E402
 from torchrl_ftb.datasets import dataset_kwargs, make_dataset  # noqa: E402
 from torchrl_ftb.diffusion import DiffusionSampler, get_preset, load_diffuser  # noqa: E402
 from torchrl_ftb.envs import metaworld_frame_stack_error, true_reward_fn  # noqa: E402
 from torchrl_ftb.flow import (  # noqa: E402
-    FlowToBetter, clip_actions, default_min_length, improves, masked_true_return, normalized_scores,
-    trajectory_validity,
+    FlowToBetter, clip_actions, default_min_length, improves, masked_true_return, masked_true_returns,
+    normalized_scores, trajectory_validity,
 )
 from torchrl_ftb.preference import (  # noqa: E402
     correlations, load_score_model, score_trajectories, with_normalized_scores,
@@ -51,16 +52,22 @@ def spearman(a: torch.Tensor, b: torch.Tensor) -> float:
     return correlations(a, b)["spearman"] if a.numel() >= 3 else float("nan")
 
 
-def sample_true_return(samples, reward_fn) -> torch.Tensor:
+def sample_true_return(samples, reward_fn, *, horizon: int | None = None, streak: int | None = None) -> torch.Tensor:
     """True-reward-oracle return ``[N]`` of generated trajectories, actions clipped to the env's
-    [-1, 1] first (as the flow does before accepting a sample)."""
-    return masked_true_return(clip_actions(samples.clone(), 1.0), reward_fn)
+    [-1, 1] first (as the flow does before accepting a sample). ``horizon`` / ``streak``: the
+    stop-rule fill after the stop-rule cut (:func:`torchrl_ftb.flow.masked_true_returns`; ``streak``
+    needs a ``reward_fn`` that also returns success); ``None``: the plain sum."""
+    clipped = clip_actions(samples.clone(), 1.0)
+    if streak is None:
+        return masked_true_return(clipped, reward_fn, horizon=horizon)
+    return masked_true_returns(clipped, reward_fn, horizons=(horizon,), streaks=(streak,))[:, 0]
 
 
-def load_run(run: Path, *, with_returns: bool = False):
+def load_run(run: Path, *, with_returns: bool = False, horizon: int | None = None):
     """``(cfg, trajectories)`` of an FTB run directory: its resolved config and its dataset
     (``observation``, ``action``, ``mask``), rebuilt from the cache with the run's settings.
-    ``with_returns=True`` also returns the dataset's true returns ``[N]`` (recorded rewards)."""
+    ``with_returns=True`` also returns the dataset's true returns ``[N]`` (recorded rewards; with
+    ``horizon``, the stop-rule fill of :func:`torchrl_ftb.data.labels.true_return`)."""
     cfg = OmegaConf.load(run / "config.yaml")
     name = str(cfg.env.name)
     trajs, _ = make_dataset(name, **dataset_kwargs(name, cfg.dataset, max_episode_steps=int(cfg.env.max_episode_steps),
@@ -68,6 +75,8 @@ def load_run(run: Path, *, with_returns: bool = False):
     out = trajs.select("observation", "action", "mask")
     if not with_returns:
         return cfg, out
+    if horizon is not None:
+        return cfg, out, true_return(trajs, horizon=horizon).double()
     returns = (trajs.get(("next", "reward")).reshape(trajs.batch_size).double() * trajs.get("mask")).sum(-1)
     return cfg, out, returns
 

@@ -1,0 +1,49 @@
+"""bench/diffuser_conditioning.py: the top-block conditions (the flow's top-k) on the toy task."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+
+from torchrl_ftb.data.labels import true_return
+from torchrl_ftb.diffusion import make_diffuser
+from torchrl_ftb.preference import ScoreModel
+from torchrl_ftb.testing import load_script, make_toy_dataset, toy_reward
+
+ROOT = Path(__file__).resolve().parents[1]
+pytestmark = [pytest.mark.filterwarnings("ignore::UserWarning"), pytest.mark.usefixtures("one_thread")]
+
+
+def test_top_block_conditions_have_no_target_and_keep_the_other_blocks_statistics(tmp_path):
+    bench = load_script(ROOT / "bench" / "diffuser_conditioning.py", "bench_diffuser_conditioning")
+    data = make_toy_dataset(num_trajectories=40, horizon=16, seed=0)
+    trajs = data.select("observation", "action", "mask")
+    returns = true_return(data).double()
+    ids = torch.empty(40, dtype=torch.long)
+    ids[returns.argsort()] = torch.arange(40) // 10  # four ascending blocks of ten
+    obs_dim, act_dim = trajs["observation"].shape[-1], trajs["action"].shape[-1]
+    diffuser = make_diffuser("tiny", obs_dim=obs_dim, action_dim=act_dim, horizon=16, data=trajs,
+                             hidden_dim=16, cond_dim=16)
+    model = ScoreModel(obs_dim, act_dim, num_cells=16, seed=0)
+    kw = dict(per_block=3, sampler="ddim", steps=2, guidance=1.2, seed=0, returns=returns, reward_fn=toy_reward)
+    base = bench.evaluate(diffuser, model, trajs, returns, ids, **kw)
+    top = bench.evaluate(diffuser, model, trajs, returns, ids, top_block=True, **kw)
+
+    assert list(base["per_condition_block"]) == ["1", "2", "3"] and base["num_conditions"] == 9
+    assert list(top["per_condition_block"]) == ["1", "2", "3", "4"] and top["num_conditions"] == 12
+    b4 = top["per_condition_block"]["4"]
+    assert b4["target_block_score"] is None and b4["target_block_true_return"] is None
+    assert b4["condition_true_return_max"] <= float(returns.max()) + 1e-9
+    assert b4["condition_true_return"] >= float(returns[ids == 3].min()) - 1e-9  # conditions from the top block
+    assert 0.0 <= b4["samples_above_condition"] <= 1.0
+    for k in ("1", "2", "3"):  # the same conditions and targets for the blocks the pairs use
+        for field in ("condition_score", "target_block_score", "condition_true_return", "target_block_true_return"):
+            assert top["per_condition_block"][k][field] == pytest.approx(base["per_condition_block"][k][field])
+
+    path = tmp_path / "toy-top.json"
+    path.write_text(json.dumps({"evaluations": [{**top, "step": 0}]}))
+    table = bench.summarize([path]).splitlines()
+    assert "B4 (top: no target) → sample" in table[0]
+    assert table[2].endswith("(—) |") and len(table) == 3
