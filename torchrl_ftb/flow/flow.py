@@ -17,6 +17,11 @@ condition (and joins the pool) only when it is **valid** and its score **improve
   scores, but it stays meaningful when raw scores are negative (a raw ratio flips sign
   there) and it does not mix γ = 0.99 (blocks) with γ = 1 (filter) as their code does.
   For ``ŝ_old <= 0`` (only the dataset minimum) any strict increase is accepted.
+  Near the top the rule asks for an absolute jump: the dataset's best trajectory (``ŝ = 1``)
+  is replaced only by a sample ``(σ - 1)(s_max - s_min)`` above the dataset's max, so a max
+  that sits within that margin of the best the task allows cannot rise under σ > 1.
+  ``threshold=1.0`` accepts any strict gain (e.g. to ask whether the samples beat the data's
+  best at all).
   With an ensemble score model, ``ensemble_rule="all"`` asks every member's own normalised
   score to improve (a pessimistic filter: a sample that exploits one member's extrapolation
   off the data is rejected); ``"mean"`` (default) uses the ensemble-mean score.
