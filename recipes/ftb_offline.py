@@ -95,7 +95,8 @@ RESUME_FREE_KEYS = ("resume", "overwrite", "redo_from", "stop_after", "progress"
                     "hydra")
 #: entries of another stage's section that only a later stage reads (free when that one is redone):
 #: the diffuser's sampling settings are used by the flow only
-STAGE_OWNED_KEYS = {"flow": (("diffuser", "sampler"), ("diffuser", "sample_steps"), ("diffuser", "guidance"))}
+STAGE_OWNED_KEYS = {"flow": (("diffuser", "sampler"), ("diffuser", "sample_steps"), ("diffuser", "guidance"),
+                              ("diffuser", "strength"))}
 #: what each stage leaves under ``checkpoints/`` (removed by ``redo_from``)
 STAGE_CHECKPOINTS = {"labels": ("labels",), "score_model": ("score_model.pt",), "blocks": ("blocks.pt",),
                      "diffuser": ("diffuser",), "flow": ("flow.pt",), "bc": ("bc.pt",)}
@@ -112,7 +113,8 @@ def _comparable(cfg: DictConfig) -> dict:
 
 
 #: options added after runs were saved, with the value that reproduces the older behaviour
-_ADDED_OPTION_NOOPS = {"score_model.num_members": 1, "flow.ensemble_rule": "mean", "flow.filter": "score_model"}
+_ADDED_OPTION_NOOPS = {"score_model.num_members": 1, "flow.ensemble_rule": "mean", "flow.filter": "score_model",
+                       "diffuser.strength": 1.0}
 
 
 def _diff_keys(a: Any, b: Any, prefix: str = "") -> list[str]:
@@ -291,7 +293,18 @@ def make_sampler(cfg, diffuser) -> DiffusionSampler:
     device = diffuser.normalizer.mean.device
     generator = torch.Generator(device=device).manual_seed(int(cfg.seed))
     return DiffusionSampler(diffuser, sampler=s["sampler"], steps=s["sample_steps"], guidance=s["guidance"],
-                            generator=generator, autocast_bf16=bool(cfg.diffuser.autocast_bf16))
+                            strength=sdedit_strength(cfg), generator=generator,
+                            autocast_bf16=bool(cfg.diffuser.autocast_bf16))
+
+
+def sdedit_strength(cfg: DictConfig) -> float:
+    """``diffuser.strength`` in (0, 1]: 1 samples from noise (the paper); below 1 each flow sample is an
+    SDEdit edit of its condition (:class:`~torchrl_ftb.diffusion.DiffusionSampler`)."""
+    value = cfg.diffuser.get("strength", 1.0)
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 < float(value) <= 1.0:
+        raise ValueError(f"diffuser.strength={value!r}: must be a number in (0, 1] (1: sample from noise, "
+                         f"the paper; below 1: an SDEdit edit of the condition)")
+    return float(value)
 
 
 def stage_diffuser(cfg, run: RunDir, trajs, scores, block_ids, obs_dim, act_dim, device, logger):
@@ -568,6 +581,7 @@ def run(cfg: DictConfig) -> dict:
             raise ValueError(f"{key} is the stop-rule fill for tasks without terminal states (Meta-World); "
                              f"env.name={cfg.env.name!r} episodes terminate (falls) and the diffuser's samples carry "
                              f"no termination flag: leave it null")
+    sdedit_strength(cfg)  # a malformed strength fails now, not after the diffuser's training
     if flow_filter(cfg) == "true_return" and not cfg.flow.true_reward:
         raise ValueError("flow.filter=true_return ranks and accepts by the ground-truth return: it needs "
                          "flow.true_reward=true")

@@ -216,6 +216,11 @@ def test_bad_config_is_a_clear_error(tmp_path):
     with pytest.raises(ValueError, match="flow.true_return_streak needs flow.true_return_horizon"):
         recipe.run(_cfg(tmp_path / "h3", "env.name=button-press-v3", "flow.true_return_streak=25"))
     assert not (tmp_path / "h3").exists()
+    with pytest.raises(ValueError, match=r"diffuser.strength=0: must be a number in \(0, 1\]"):
+        recipe.run(_cfg(tmp_path / "s", "diffuser.strength=0"))
+    with pytest.raises(ValueError, match="diffuser.strength=1.5"):
+        recipe.run(_cfg(tmp_path / "s", "diffuser.strength=1.5"))
+    assert not (tmp_path / "s").exists()
     with pytest.raises(ValueError, match=r"labels.query.strategy='margin': choose one of \['random'"):
         recipe.run(_cfg(tmp_path / "g", "labels.query.strategy=margin"))
     assert not (tmp_path / "g").exists()
@@ -374,3 +379,19 @@ def test_final_table_reports_the_stop_rule_cut_beside_the_fill():
                 true_return_filled_stop_rule_mean_after=11.0)
     rows = dict(recipe.final_table(metrics))
     assert rows["the same after the stop-rule cut (25 successes): before -> after"] == "10 -> 11"
+
+
+def test_sdedit_strength_reaches_the_flow_sampler(tmp_path):
+    """``diffuser.strength`` (flow-stage sampling): 1 samples from noise, below 1 edits the condition."""
+    from torchrl_ftb.diffusion import make_diffuser
+    from torchrl_ftb.testing import make_toy_dataset
+
+    recipe = _recipe()
+    data = make_toy_dataset(num_trajectories=8, horizon=16, seed=0).select("observation", "action", "mask")
+    diffuser = make_diffuser("tiny", obs_dim=data["observation"].shape[-1], action_dim=data["action"].shape[-1],
+                             horizon=16, data=data, hidden_dim=16, cond_dim=16)
+    assert recipe.make_sampler(_cfg(tmp_path), diffuser).strength == 1.0
+    sampler = recipe.make_sampler(_cfg(tmp_path, "diffuser.strength=0.3"), diffuser)
+    assert sampler.strength == 0.3
+    edits = sampler(TensorDict({"condition": data[:2]}, batch_size=[2]))["sample"]
+    assert edits["observation"].shape == data[:2]["observation"].shape
