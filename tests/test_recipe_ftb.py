@@ -395,3 +395,15 @@ def test_sdedit_strength_reaches_the_flow_sampler(tmp_path):
     assert sampler.strength == 0.3
     edits = sampler(TensorDict({"condition": data[:2]}, batch_size=[2]))["sample"]
     assert edits["observation"].shape == data[:2]["observation"].shape
+
+
+def test_options_added_later_resume_old_run_directories_at_their_no_op_defaults():
+    """A run directory written before an option existed resumes when the option is at its no-op value."""
+    recipe = _recipe()
+    old = {"diffuser": {"guidance": None}, "flow": {"top_k": 8}, "score_model": {}}
+    new = {"diffuser": {"guidance": None, "strength": 1.0}, "flow": {"top_k": 8, "filter": "score_model",
+                                                                       "ensemble_rule": "mean"},
+           "score_model": {"num_members": 1}}
+    assert recipe._diff_keys(new, old) == []
+    new["diffuser"]["strength"] = 0.5
+    assert recipe._diff_keys(new, old) == ["diffuser.strength: '<missing>' -> 0.5"]
