@@ -185,3 +185,32 @@ def test_expert_replay_keeps_each_episodes_goal_and_start(tiny_dataset):
     assert bool((oracle[:, 1] > oracle[:, 0]).any())  # some episode stopped early and is filled
     recorded = torch.stack(bench.returns(td, horizon=150), -1)
     torch.testing.assert_close(oracle[:, :2], recorded, rtol=0.02, atol=0.0)
+
+
+@pytest.mark.integration
+def test_open_loop_replay_of_recorded_actions_reproduces_the_episodes(tiny_dataset):
+    """replay_metaworld_actions: each episode's own goal and start, then given actions, open loop."""
+    import numpy as np
+
+    from torchrl_ftb.datasets.metaworld import replay_metaworld_actions
+
+    td, meta, _ = tiny_dataset
+    mask = td["mask"]
+    jobs = [(int(g), int(e)) for g, e in zip(meta["per_trajectory"]["group"], meta["per_trajectory"]["episode"])]
+    actions = [td["action"][i, :int(mask[i].sum())].numpy() for i in range(len(jobs))]
+    eps = replay_metaworld_actions("button-press-v3", jobs, actions, seed=int(meta["seed"]), max_steps=150)
+    for i, ep in enumerate(eps):
+        n = int(mask[i].sum())
+        assert len(ep["reward"]) == n  # the expert's replay stops at the same success streak
+        np.testing.assert_allclose(ep["reward"], td["next", "reward"][i, :n, 0].numpy(), rtol=1e-5, atol=1e-5)
+        assert ep["success"].tolist() == td["next", "success"][i, :n, 0].tolist()
+    # other actions from the same start: the same first observation, another outcome; a short
+    # sequence stops after its last action
+    lazy = [np.zeros((40, 4))]
+    other = replay_metaworld_actions("button-press-v3", jobs[:1], lazy, seed=int(meta["seed"]), max_steps=150)[0]
+    np.testing.assert_allclose(other["observation"][0], td["observation"][0, 0].numpy(), atol=1e-6)
+    assert len(other["reward"]) == 40 and not other["success"].any()
+    with pytest.raises(ValueError, match=r"actions\[0\] has shape \[40\], expected \[L, 4\]"):
+        replay_metaworld_actions("button-press-v3", jobs[:1], [np.zeros(40)], seed=0)
+    with pytest.raises(ValueError, match="2 action sequences for 1 jobs"):
+        replay_metaworld_actions("button-press-v3", jobs[:1], lazy * 2, seed=0)

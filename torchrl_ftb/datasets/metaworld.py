@@ -57,6 +57,7 @@ __all__ = [
     "default_cache_dir",
     "make_metaworld_dataset",
     "generate_metaworld_episodes",
+    "replay_metaworld_actions",
     "check_groups",
     "dataset_stats",
     "format_stats",
@@ -80,11 +81,13 @@ def _episode_rng(seed: int, group: int, episode: int) -> np.random.Generator:
 
 
 def _run_episode(env, task: str, group: int, rng: np.random.Generator, *, noise: float,
-                 max_steps: int, policies: dict, expert: bool = False) -> dict:
+                 max_steps: int, policies: dict, expert: bool = False, actions: np.ndarray | None = None) -> dict:
     """One episode of ``group`` (see module docstring); returns numpy arrays per step.
 
     ``expert=True`` replays the episode's goal and start with the task's own scripted policy
-    instead of the group's (``bench/expert_headroom.py``: what the expert reaches from there)."""
+    instead of the group's (``bench/expert_headroom.py``: what the expert reaches from there).
+    ``actions [L, 4]``: the episode's goal and start, then these actions open loop (clipped as the
+    data's), stopping after ``L`` steps or at the stop rule, whichever comes first."""
     name = GROUPS[group]
     tasks = metaworld_tasks()
     policy_task = -1
@@ -105,9 +108,11 @@ def _run_episode(env, task: str, group: int, rng: np.random.Generator, *, noise:
     obs, _ = u.reset()
     steps = {k: [] for k in ("observation", "action", "next_observation", "reward", "success", "state")}
     streak = 0
-    for _ in range(max_steps):
+    for t in range(max_steps if actions is None else min(max_steps, len(actions))):
         state = np.concatenate([u.data.qpos, u.data.qvel])
-        if policy is None:
+        if actions is not None:
+            action = np.asarray(actions[t], dtype=np.float64)
+        elif policy is None:
             action = rng.uniform(-1.0, 1.0, size=4)
         else:
             action = policy(obs) + noise * rng.standard_normal(4)
@@ -127,25 +132,70 @@ def _run_episode(env, task: str, group: int, rng: np.random.Generator, *, noise:
 
 
 def generate_metaworld_episodes(task: str, jobs: list[tuple[int, int]], *, seed: int, noise: float,
-                                max_steps: int, on_episode=None, expert: bool = False) -> list[dict]:
+                                max_steps: int, on_episode=None, expert: bool = False,
+                                actions: "list[np.ndarray] | None" = None) -> list[dict]:
     """Generate the episodes ``jobs = [(group, episode), ...]`` (a worker's share).
 
     Deterministic per ``(seed, group, episode)``; used in-process or in worker processes.
     ``on_episode()`` (optional) is called after each episode (progress bar). ``expert=True``:
     every episode's goal and start as generated, acted on by the task's scripted policy
-    (with ``noise``) whatever its group.
+    (with ``noise``) whatever its group. ``actions`` (one ``[L_i, 4]`` array per job): an
+    open-loop replay, each episode's goal and start acted on by those actions instead
+    (:func:`replay_metaworld_actions`).
     """
+    if actions is not None and len(actions) != len(jobs):
+        raise ValueError(f"generate_metaworld_episodes: {len(actions)} action sequences for {len(jobs)} jobs")
     env = make_metaworld_gym_env(task, seed=seed, max_episode_steps=max_steps)
     policies: dict = {}
     out = []
-    for group, episode in jobs:
+    for i, (group, episode) in enumerate(jobs):
         ep = _run_episode(env, task, group, _episode_rng(seed, group, episode), noise=noise,
-                          max_steps=max_steps, policies=policies, expert=expert)
+                          max_steps=max_steps, policies=policies, expert=expert,
+                          actions=None if actions is None else actions[i])
         ep["episode"] = episode
         out.append(ep)
         if on_episode is not None:
             on_episode()
     return out
+
+
+def replay_metaworld_actions(task: str, jobs: list[tuple[int, int]], actions: "list[np.ndarray]", *, seed: int,
+                             max_steps: int = METAWORLD_MAX_EPISODE_STEPS, on_episode=None) -> list[dict]:
+    """Open-loop replay: each dataset episode's own goal and start, then a given action sequence.
+
+    The simulator's answer to "what do these actions do from there?": for a generated trajectory,
+    replay its actions from the start of the dataset episode it was made from and compare the
+    simulator's rewards with the ones read off the generated states. Actions are clipped as the
+    data's; an episode stops after its actions or at the data's stop rule (``SUCCESS_STREAK``
+    consecutive successes). Replaying a recorded episode's own actions reproduces it.
+
+    Args:
+        task: Meta-World v3 task name.
+        jobs: ``(group index, episode)`` per sequence (a dataset's ``meta["per_trajectory"]``;
+            the group index into :data:`GROUPS`).
+        actions: one ``[L_i, 4]`` array per job.
+        seed: the dataset's generator seed (``meta["seed"]``).
+        max_steps: the time limit.
+        on_episode: called after each episode (progress bar).
+
+    Returns:
+        One dict of per-step numpy arrays per job (``observation``, ``action``, ``reward``,
+        ``success``, ...), as :func:`generate_metaworld_episodes`.
+
+    Example:
+        >>> import numpy as np
+        >>> eps = replay_metaworld_actions("button-press-v3", [(0, 0)], [np.zeros((5, 4))],
+        ...                                seed=0)  # doctest: +SKIP
+        >>> eps[0]["reward"].shape  # doctest: +SKIP
+        (5,)
+    """
+    check_metaworld_task(task)
+    seqs = [np.clip(np.asarray(a, dtype=np.float64), -ACTION_CLIP, ACTION_CLIP) for a in actions]
+    for i, a in enumerate(seqs):
+        if a.ndim != 2 or a.shape[-1] != 4:
+            raise ValueError(f"replay_metaworld_actions: actions[{i}] has shape {list(a.shape)}, expected [L, 4]")
+    return generate_metaworld_episodes(task, jobs, seed=seed, noise=0.0, max_steps=max_steps,
+                                       on_episode=on_episode, actions=seqs)
 
 
 def _to_trajectories(episodes: list[dict], horizon: int) -> tuple[TensorDict, TensorDict]:

@@ -1,0 +1,155 @@
+"""Do a run's generated trajectories do in the simulator what their states say? Open-loop replays.
+
+The flow's "true return" of a generated Meta-World trajectory is the task's reward read off the
+*generated* observations (:func:`torchrl_ftb.envs.true_reward_fn`); the physics proxies
+(``bench/flow_generated.py``) only ask whether those observations look physical. This bench asks the
+simulator directly. For every generated trajectory in an FTB run's final set (``checkpoints/flow.pt``)
+it finds the dataset episode it starts from (the nearest first observation; a sample edits or is
+conditioned on a trajectory that starts there), replays the sample's actions open loop from that
+episode's own goal and start (:func:`torchrl_ftb.datasets.metaworld.replay_metaworld_actions`: the
+same reset as the data, the data's stop rule; after the sample's last action the hand holds still,
+zero actions, until the stop rule or the time limit, as an episode runs on -- ``--no-hold`` stops
+there instead), and compares the simulator's return with the one its states claim. Replaying a recorded episode's own actions reproduces it (tested), so a gap is the
+sample's.
+
+Returns are the stop-rule return of the flow's statistics (``--horizon`` steps, after a
+``SUCCESS_STREAK`` cut; a trajectory that no stop rule ended earns its own steps only) and the plain
+sum. Reported per run: the original top-k's recorded returns, the final set's as the flow claims them
+(generated states), and the final set with every generated trajectory's return replaced by its replay's
+(what its actions achieve) -- the improvement target measured in the simulator. Open-loop replay is the
+strictest reading: a policy cloned from the sample would act in closed loop.
+
+Usage::
+
+    python bench/open_loop.py --run-dirs RUN [RUN ...] --horizon 500 --out bench/results/open_loop.json
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+from omegaconf import OmegaConf
+from tensordict import TensorDict
+from tqdm.auto import tqdm
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
+
+from expert_headroom import match_rows  # noqa: E402
+from flow_generated import metaworld_returns  # noqa: E402
+
+from torchrl_ftb.datasets import dataset_kwargs, make_dataset  # noqa: E402
+from torchrl_ftb.datasets.metaworld import GROUPS, SUCCESS_STREAK, replay_metaworld_actions  # noqa: E402
+from torchrl_ftb.flow import clip_actions, return_summary  # noqa: E402
+from torchrl_ftb.provenance import run_record, write_json  # noqa: E402
+
+
+def replay_returns(episodes: list[dict], *, horizon: int) -> torch.Tensor:
+    """``float64 [N, 2]``: plain sum and stop-rule return (filled to ``horizon`` only where the stop rule
+    ended the replay) of open-loop replays."""
+    out = torch.zeros(len(episodes), 2, dtype=torch.float64)
+    for i, ep in enumerate(episodes):
+        reward = torch.as_tensor(ep["reward"], dtype=torch.float64)
+        success = torch.as_tensor(ep["success"], dtype=torch.bool)
+        n = reward.numel()
+        fired = n >= SUCCESS_STREAK and bool(success[-SUCCESS_STREAK:].all())  # the replay stops at the streak
+        out[i, 0] = reward.sum()
+        out[i, 1] = reward.sum() + (float(reward[-1]) * (horizon - n) if fired and n < horizon else 0.0)
+    return out
+
+
+def nearest_start(first: torch.Tensor, data_first: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Dataset row whose first observation is nearest to each sample's, and the distance (max-abs)."""
+    dist = (first[:, None] - data_first[None]).abs().amax(-1)
+    best = dist.min(-1)
+    return best.indices, best.values
+
+
+def open_loop(run: Path, *, horizon: int, progress: bool, hold: bool = True) -> dict:
+    cfg = OmegaConf.load(run / "config.yaml")
+    task = str(cfg.env.name)
+    data, meta = make_dataset(task, **dataset_kwargs(task, cfg.dataset, max_episode_steps=int(cfg.env.max_episode_steps),
+                                                     progress=False))
+    if meta.get("domain") != "metaworld":
+        raise ValueError(f"{run}: {task} is not a generated Meta-World dataset (open-loop replay needs its starts)")
+    ckpt = torch.load(run / "checkpoints" / "flow.pt", weights_only=True)
+    final = TensorDict(ckpt["trajectories"]["data"], batch_size=ckpt["trajectories"]["batch_size"])
+    original = TensorDict(ckpt["original"]["data"], batch_size=ckpt["original"]["batch_size"])
+    generated = ckpt["source_step"] > 0
+    # the original top-k's returns as the flow computes them (its "before"; on recorded states the
+    # reward read off the states is the simulator's own), checked to be rows of the dataset
+    match_rows(original["observation"].float(), data["observation"])
+    recorded = metaworld_returns(task, clip_actions(original.select("observation", "action", "mask").clone(), 1.0),
+                                 horizon=horizon)
+    claimed = metaworld_returns(task, clip_actions(final.select("observation", "action", "mask").clone(), 1.0),
+                                horizon=horizon)
+    gen = final[generated]
+    start_row, start_dist = nearest_start(gen["observation"][:, 0].float(), data["observation"][:, 0])
+    per, groups = meta["per_trajectory"], list(meta["groups"])
+    jobs = [(GROUPS.index(groups[int(per["group"][r])]), int(per["episode"][r])) for r in start_row.tolist()]
+    lengths = gen["mask"].sum(-1).tolist()
+    limit = int(meta["max_steps"])
+    actions = [gen["action"][i, :n].numpy() for i, n in enumerate(lengths)]
+    if hold:  # after its last action the hand holds still, as an episode runs on until the stop rule or the limit
+        actions = [np.concatenate([a, np.zeros((limit - len(a), a.shape[-1]), dtype=a.dtype)]) for a in actions]
+    bar = tqdm(total=len(jobs), desc=f"{task} open-loop replays", disable=not progress)
+    episodes = replay_metaworld_actions(task, jobs, actions, seed=int(meta["seed"]),
+                                        max_steps=limit, on_episode=lambda: bar.update(1))
+    bar.close()
+    replayed = replay_returns(episodes, horizon=horizon)
+    real = claimed[:, [0, 2]].clone()  # plain, stop-rule: generated ones replaced by their replays
+    real[generated] = replayed
+    samples = [{"length": int(n), "replay_length": len(ep["reward"]), "start_row": int(r), "start_distance": float(d),
+                "claimed_plain": float(c[0]), "claimed_stop_rule": float(c[2]), "replayed_plain": float(p[0]),
+                "replayed_stop_rule": float(p[1]), "replay_success": bool(ep["success"].any())}
+               for n, ep, r, d, c, p in zip(lengths, episodes, start_row.tolist(), start_dist.tolist(),
+                                            claimed[generated], replayed)]
+    out = {"env": task, "seed": int(cfg.seed), "top_k": int(original.batch_size[0]),
+           "flow_filter": str(cfg.flow.get("filter", "score_model")),
+           "diffuser_strength": float(cfg.diffuser.get("strength", 1.0)),
+           "hold_after_last_action": hold, "num_generated": int(generated.sum()), "start_distance_max": float(start_dist.max()) if samples else None,
+           "samples": samples, "improvement": {}}
+    for j, name in ((0, "plain"), (1, f"stop_rule_{horizon}")):
+        claim_col = 0 if j == 0 else 2
+        out["improvement"][name] = {
+            "claimed": return_summary(recorded[:, claim_col], claimed[:, claim_col]),
+            "replayed": return_summary(recorded[:, claim_col], real[:, j]),
+        }
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--run-dirs", nargs="+", type=Path, required=True)
+    parser.add_argument("--horizon", type=int, default=500, help="the stop-rule return's horizon (Meta-World: 500)")
+    parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "open_loop.json")
+    parser.add_argument("--no-progress", action="store_true")
+    parser.add_argument("--no-hold", action="store_true",
+                        help="stop each replay after the sample's last action (default: the hand then holds still, "
+                             "zero actions, until the stop rule or the time limit)")
+    args = parser.parse_args()
+    for run in args.run_dirs:  # all of them before any work
+        missing = [name for name in ("config.yaml", "checkpoints/flow.pt") if not (run / name).is_file()]
+        if missing:
+            parser.error(f"{run}: not a finished FTB run directory (no {' or '.join(missing)})")
+    record = {**run_record(config={"run_dirs": [str(r) for r in args.run_dirs], "horizon": args.horizon,
+                                   "hold": not args.no_hold}), "runs": {}}
+    for run in args.run_dirs:
+        entry = record["runs"][str(run)] = open_loop(run, horizon=args.horizon, progress=not args.no_progress,
+                                                     hold=not args.no_hold)
+        for name, v in entry["improvement"].items():
+            c, r = v["claimed"], v["replayed"]
+            print(f"{entry['env']} seed {entry['seed']} {name}: mean {c['true_return_mean_before']:.0f} -> "
+                  f"{c['true_return_mean_after']:.0f} claimed / {r['true_return_mean_after']:.0f} replayed; max "
+                  f"{c['true_return_max_before']:.0f} -> {c['true_return_max_after']:.0f} claimed / "
+                  f"{r['true_return_max_after']:.0f} replayed")
+        write_json(args.out, record)
+    print(f"-> {args.out}")
+
+
+if __name__ == "__main__":
+    main()
