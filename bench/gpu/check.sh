@@ -14,7 +14,9 @@
 # 30 scripted labels, `cpu` preset, seed 0) up to its blocks (stop_after=blocks; the dataset is
 # generated there, 16 workers) -> bench/diffuser_conditioning.py with a fresh `paper`-preset
 # diffuser on that run's block pairs (bf16, DDPM-25 samples, an evaluation every EVERY steps, a
-# wall-clock cap). Every evaluation rewrites the bench's JSON, so a kill keeps what was measured.
+# wall-clock cap; conditions from every block, the top one too, scored by the stop-rule return as the
+# flow's statistics: do the top blocks' conditions get samples above them?). Every evaluation rewrites
+# the bench's JSON, so a kill keeps what was measured.
 # Results come back under $OUT (env.txt, the bench JSON, the run's metrics_partial.json, logs);
 # copy the bench JSON into bench/results/diffuser_conditioning/ here and summarise it with
 # `python bench/diffuser_conditioning.py --summarize <json>`.
@@ -28,7 +30,7 @@ if [ -f "$ARCHIVE" ]; then
     rm -rf /tmp/ftb_site && mkdir -p /tmp/ftb_site && tar -C /tmp/ftb_site -xJf "$ARCHIVE" || exit 3
     export PYTHONPATH="/tmp/ftb_site${PYTHONPATH:+:$PYTHONPATH}"
 fi
-export PYTHONPATH="$PWD:${PYTHONPATH}" PYTHONUNBUFFERED=1 MPLBACKEND=Agg
+export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1 MPLBACKEND=Agg
 
 if [ -n "${SMOKE:-}" ]; then  # CPU: the same steps at toy sizes
     DEVICE=cpu; PRESET=tiny; BF16=(); STEPS=4; EVERY=2; WORKERS=2; BUDGET=${BUDGET:-900}
@@ -66,7 +68,7 @@ echo "== conditioning bench, $PRESET preset on $DEVICE: ${BENCH_SECONDS} s left,
 [ "$BENCH_SECONDS" -gt 150 ] || { echo "too little time left for the bench"; exit 6; }
 timeout "$BENCH_SECONDS" "$PY" bench/diffuser_conditioning.py --run-dir "$RUN" --preset "$PRESET" --steps "$STEPS" \
     --eval-every "$EVERY" --sampler ddpm --sample-steps 25 --device "$DEVICE" "${BF16[@]}" --max-minutes "$MINUTES" \
-    --tag "$TAG" ${BENCH_EXTRA:-} 2>&1 | tail -n 40 > "$OUT/bench.log"
+    --top-block --horizon 500 --streak 25 --tag "$TAG" ${BENCH_EXTRA:-} 2>&1 | tail -n 40 > "$OUT/bench.log"
 echo "bench exit ${PIPESTATUS[0]} (124: stopped by the wall-clock cap; evaluations so far are kept)" | tee -a "$OUT/env.txt"
 mv bench/results/diffuser_conditioning/*-"$(basename "$RUN")"*"-$TAG.json" "$OUT/" 2>/dev/null || echo "no bench JSON"
 command -v nvidia-smi >/dev/null && nvidia-smi --query-gpu=name,memory.used,memory.total --format=csv >> "$OUT/env.txt"
