@@ -83,13 +83,21 @@ def stats(x: torch.Tensor) -> dict:
     return {"mean": float(x.mean()), "max": float(x.max()), "argmax": int(x.argmax())}
 
 
-def headroom(run: Path, *, noise: float, horizon: int, progress: bool) -> dict:
+def load_metaworld_run(run: Path) -> tuple:
+    """``(cfg, dataset, meta)`` of an FTB run on a generated Meta-World dataset (rebuilt from the cache with
+    the run's settings; ``meta`` holds the generator's seed and each episode's group and index)."""
     cfg = OmegaConf.load(run / "config.yaml")
     name = str(cfg.env.name)
     td, meta = make_dataset(name, **dataset_kwargs(name, cfg.dataset, max_episode_steps=int(cfg.env.max_episode_steps),
                                                    progress=False))
     if meta.get("domain") != "metaworld":
-        raise ValueError(f"{run}: {name} is not a generated Meta-World dataset")
+        raise ValueError(f"{run}: {name} is not a generated Meta-World dataset (its goals and starts are needed)")
+    return cfg, td, meta
+
+
+def headroom(run: Path, *, noise: float, horizon: int, progress: bool) -> dict:
+    cfg, td, meta = load_metaworld_run(run)
+    name = str(cfg.env.name)
     per = meta["per_trajectory"]
     mask = td.get("mask")
     data_plain, data_filled = returns(td, horizon=horizon)

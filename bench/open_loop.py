@@ -31,7 +31,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from omegaconf import OmegaConf
 from tensordict import TensorDict
 from tqdm.auto import tqdm
 
@@ -39,10 +38,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
-from expert_headroom import match_rows  # noqa: E402
+from expert_headroom import load_metaworld_run, match_rows  # noqa: E402
 from flow_generated import metaworld_returns  # noqa: E402
 
-from torchrl_ftb.datasets import dataset_kwargs, make_dataset  # noqa: E402
 from torchrl_ftb.datasets.metaworld import GROUPS, SUCCESS_STREAK, replay_metaworld_actions  # noqa: E402
 from torchrl_ftb.flow import clip_actions, return_summary  # noqa: E402
 from torchrl_ftb.provenance import run_record, write_json  # noqa: E402
@@ -70,12 +68,8 @@ def nearest_start(first: torch.Tensor, data_first: torch.Tensor) -> tuple[torch.
 
 
 def open_loop(run: Path, *, horizon: int, progress: bool, hold: bool = True) -> dict:
-    cfg = OmegaConf.load(run / "config.yaml")
+    cfg, data, meta = load_metaworld_run(run)
     task = str(cfg.env.name)
-    data, meta = make_dataset(task, **dataset_kwargs(task, cfg.dataset, max_episode_steps=int(cfg.env.max_episode_steps),
-                                                     progress=False))
-    if meta.get("domain") != "metaworld":
-        raise ValueError(f"{run}: {task} is not a generated Meta-World dataset (open-loop replay needs its starts)")
     ckpt = torch.load(run / "checkpoints" / "flow.pt", weights_only=True)
     final = TensorDict(ckpt["trajectories"]["data"], batch_size=ckpt["trajectories"]["batch_size"])
     original = TensorDict(ckpt["original"]["data"], batch_size=ckpt["original"]["batch_size"])
