@@ -537,6 +537,10 @@ def write_report(run: RunDir, metrics: dict, flow_stats: list[dict]) -> Path:
     lines = [f"# FTB offline — {metrics['env']} ({metrics['preset']} preset, teacher {metrics['teacher']})", "",
              "| metric | value |", "|---|---|"]
     lines += [f"| {k} | {v} |" for k, v in final_table(metrics)]
+    if "true_return_mean_before" in metrics["flow"]:
+        lines += ["", "The true returns of generated trajectories are the ground-truth reward read off their generated "
+                  "states, not what executing their actions achieves; on Meta-World, `bench/open_loop.py` replays "
+                  "them in the simulator (BENCHMARKS.md, session 29: there the flow's gains vanish)."]
     lines += ["", "## Flow steps", ""]
     if flow_stats:
         keys = list(flow_stats[0].keys())

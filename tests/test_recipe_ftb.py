@@ -151,6 +151,7 @@ def test_kill_during_diffuser_training_then_resume_end_to_end(tmp_path):
     assert fo["true_return_filled_max_before"] >= fs["true_return_filled_max_before"] - 1e-6
     assert fo["true_return_filled_mean_after"] >= fo["true_return_filled_mean_before"] - 1e-6
     assert "true return (oracle bound" in (run_dir / "report.md").read_text()
+    assert "read off their generated states" in (run_dir / "report.md").read_text()
     # the successes row counts the set the flow started from: the oracle's top-k here, s_psi's otherwise
     flow_ckpt = torch.load(run_dir / "checkpoints" / "flow.pt", weights_only=True)
     data, _ = make_dataset("toy", **dataset_kwargs("toy", _cfg(run_dir).dataset, max_episode_steps=32, progress=False))
