@@ -214,3 +214,42 @@ def test_open_loop_replay_of_recorded_actions_reproduces_the_episodes(tiny_datas
         replay_metaworld_actions("button-press-v3", jobs[:1], [np.zeros(40)], seed=0)
     with pytest.raises(ValueError, match="2 action sequences for 1 jobs"):
         replay_metaworld_actions("button-press-v3", jobs[:1], lazy * 2, seed=0)
+
+
+@pytest.mark.integration
+def test_open_loop_bench_replays_recorded_trajectories_to_the_returns_read_off_their_states(tiny_dataset, tmp_path):
+    """bench/open_loop.py end to end on a run directory whose "generated" trajectories are recorded ones:
+    the simulator's replay and the reward read off the states agree, and each starts at its own episode."""
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    td, meta, cache = tiny_dataset
+    root = Path(__file__).resolve().parents[1]
+    with initialize_config_dir(config_dir=str(root / "recipes" / "config"), version_base="1.3"):
+        cfg = compose(config_name="ftb_offline", overrides=[
+            "env.name=button-press-v3", "env.max_episode_steps=150", "dataset.episodes_per_group=1",
+            "dataset.noise=0.0", f"dataset.cache_dir={cache}", f"run_dir={tmp_path}"])
+    (tmp_path / "checkpoints").mkdir()
+    OmegaConf.save(cfg, tmp_path / "config.yaml", resolve=True)
+    keep = td.select("observation", "action", "mask")
+    final, original = keep[[0, 2, 1, 3]], keep[[1, 3, 0, 2]]  # rows 0 (expert, succeeds) and 2 (random) "generated"
+    torch.save({"trajectories": {"data": final.to_dict(), "batch_size": list(final.batch_size)},
+                "original": {"data": original.to_dict(), "batch_size": list(original.batch_size)},
+                "source_step": torch.tensor([1, 1, 0, 0])}, tmp_path / "checkpoints" / "flow.pt")
+    bench = load_script(root / "bench" / "open_loop.py", "bench_open_loop_mw")
+    out = bench.open_loop(tmp_path, horizon=150, progress=False)
+    assert out["num_generated"] == 2 and [s["start_row"] for s in out["samples"]] == [0, 2]
+    from torchrl_ftb.data.labels import true_return
+
+    plain, filled = true_return(td).double(), true_return(td, horizon=150).double()  # recorded rewards
+    for s, row in zip(out["samples"], (0, 2)):
+        assert s["start_distance"] == 0.0
+        # the replay is the recorded episode; the return read off its states agrees up to the rewarder's
+        # approximations (its last step's next observation is its own)
+        assert s["replayed_stop_rule"] == pytest.approx(float(filled[row]), rel=1e-5)
+        assert s["replayed_plain"] == pytest.approx(float(plain[row]), rel=1e-5)
+        assert s["claimed_stop_rule"] == pytest.approx(s["replayed_stop_rule"], rel=0.02)
+    assert [s["replay_success"] for s in out["samples"]] == [True, False]
+    imp = out["improvement"]["stop_rule_150"]["replayed"]  # the same four trajectories before and after
+    assert imp["true_return_mean_after"] == pytest.approx(imp["true_return_mean_before"], rel=1e-6)  # float32 data
+    assert imp["true_return_max_after"] == pytest.approx(float(filled.max()), rel=1e-5)
