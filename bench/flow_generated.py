@@ -169,6 +169,14 @@ def summary_table(records: dict[str, dict]) -> str:
     return "\n".join(rows)
 
 
+def require_finished_runs(parser: argparse.ArgumentParser, run_dirs: list[Path]) -> None:
+    """A clear command-line error, before any work, for a run directory without a finished flow stage."""
+    for run in run_dirs:
+        missing = [name for name in ("config.yaml", "checkpoints/flow.pt") if not (run / name).is_file()]
+        if missing:
+            parser.error(f"{run}: not a finished FTB run directory (no {' or '.join(missing)})")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--run-dirs", nargs="+", type=Path)
@@ -191,10 +199,7 @@ def main() -> None:
         return
     if not args.run_dirs:
         parser.error("--run-dirs or --summarize is required")
-    for run in args.run_dirs:  # all of them before any work
-        missing = [name for name in ("config.yaml", "checkpoints/flow.pt") if not (run / name).is_file()]
-        if missing:
-            parser.error(f"{run}: not a finished FTB run directory (no {' or '.join(missing)})")
+    require_finished_runs(parser, args.run_dirs)
     record = {**run_record(config={"run_dirs": [str(r) for r in args.run_dirs], "horizon": args.horizon,
                                    "max_frame_stack_error": args.max_frame_stack_error,
                                    "max_hand_model_error": args.max_hand_model_error,

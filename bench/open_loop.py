@@ -40,8 +40,9 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
 from expert_headroom import load_metaworld_run, match_rows  # noqa: E402
-from flow_generated import metaworld_returns  # noqa: E402
+from flow_generated import metaworld_returns, require_finished_runs  # noqa: E402
 
+from torchrl_ftb.data import stop_rule_fill  # noqa: E402
 from torchrl_ftb.data.labels import true_return  # noqa: E402
 from torchrl_ftb.datasets.metaworld import GROUPS, SUCCESS_STREAK, replay_metaworld_actions  # noqa: E402
 from torchrl_ftb.flow import clip_actions, return_summary  # noqa: E402
@@ -57,8 +58,12 @@ def replay_returns(episodes: list[dict], *, horizon: int) -> torch.Tensor:
         success = torch.as_tensor(ep["success"], dtype=torch.bool)
         n = reward.numel()
         fired = n >= SUCCESS_STREAK and bool(success[-SUCCESS_STREAK:].all())  # the replay stops at the streak
+        # the project's one fill rule (stop_rule_fill); a replay no stop rule ended counts as terminated there
+        ended = torch.zeros(1, n, dtype=torch.bool)
+        ended[0, -1] = not fired
+        last, weight = stop_rule_fill(torch.ones(1, n, dtype=torch.bool), horizon=horizon, terminated=ended)
         out[i, 0] = reward.sum()
-        out[i, 1] = reward.sum() + (float(reward[-1]) * (horizon - n) if fired and n < horizon else 0.0)
+        out[i, 1] = reward.sum() + float(weight[0]) * float(reward[last[0]])
     return out
 
 
@@ -133,10 +138,7 @@ def main() -> None:
                         help="stop each replay after the sample's last action (default: the hand then holds still, "
                              "zero actions, until the stop rule or the time limit)")
     args = parser.parse_args()
-    for run in args.run_dirs:  # all of them before any work
-        missing = [name for name in ("config.yaml", "checkpoints/flow.pt") if not (run / name).is_file()]
-        if missing:
-            parser.error(f"{run}: not a finished FTB run directory (no {' or '.join(missing)})")
+    require_finished_runs(parser, args.run_dirs)
     record = {**run_record(config={"run_dirs": [str(r) for r in args.run_dirs], "horizon": args.horizon,
                                    "hold": not args.no_hold}), "runs": {}}
     for run in args.run_dirs:

@@ -676,8 +676,9 @@ def run(cfg: DictConfig) -> dict:
     scores, block_ids = stage_blocks(cfg, run_dir, trajs, model)
     returns = teacher.returns(trajs)  # the teacher's own definition (discount, stop-rule fill)
     quality = {f"{k}_return": v for k, v in correlations(scores, returns).items()}
-    if ("next", "success") in trajs.keys(True):
-        succ = SuccessTeacher().succeeded(trajs).float()
+    # per-trajectory success (Meta-World, toy), read by the score quality here and the report's top-k row
+    succ = SuccessTeacher().succeeded(trajs).float() if ("next", "success") in trajs.keys(True) else None
+    if succ is not None:
         quality.update({f"{k}_success": v for k, v in correlations(scores, succ).items()})
         # the successes among the trajectories the flow starts from (BC's data but for accepted samples)
         quality.update(top_k_success=top_k_mean(scores, succ, min(int(cfg.flow.top_k), succ.numel())),
@@ -729,9 +730,9 @@ def run(cfg: DictConfig) -> dict:
     # analysis, plots, report -------------------------------------------------------------
     plots = run_dir.path / "plots"
     summary = dict(flow["summary"])
-    if ("next", "success") in trajs.keys(True) and flow.get("original_indices") is not None:
+    if succ is not None and flow.get("original_indices") is not None:
         # the successes among the trajectories the flow actually started from (the filter's top-k)
-        summary["top_k_success"] = float(SuccessTeacher().succeeded(trajs)[flow["original_indices"]].float().mean())
+        summary["top_k_success"] = float(succ[flow["original_indices"]].mean())
     before = {"score_mean": summary["score_mean_before"], "score_max": summary["score_max_before"]}
     if "true_return_mean_before" in summary:
         before.update(true_return_mean=summary["true_return_mean_before"],
