@@ -33,6 +33,7 @@ from tqdm.auto import tqdm
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from torchrl_ftb.analysis import match_rows  # noqa: E402
 from torchrl_ftb.data.labels import true_return  # noqa: E402
 from torchrl_ftb.datasets import dataset_kwargs, make_dataset  # noqa: E402
 from torchrl_ftb.datasets.metaworld import GROUPS, generate_metaworld_episodes  # noqa: E402
@@ -68,15 +69,6 @@ def replay_expert(task: str, per: dict, *, seed: int, noise: float, max_steps: i
                                                "terminated": torch.zeros_like(mask)[..., None]}},
                        batch_size=mask.shape)
     return trajs, success, first
-
-
-def match_rows(original: torch.Tensor, data: torch.Tensor) -> torch.Tensor:
-    """Dataset row of each original top-k trajectory (``observation [K, H, D]`` vs ``[N, H, D]``)."""
-    flat_o, flat_d = original.flatten(1), data.flatten(1)
-    idx = torch.cdist(flat_o, flat_d).argmin(-1)
-    if not torch.allclose(flat_d[idx], flat_o):
-        raise ValueError("flow.pt's original top-k are not rows of the run's dataset")
-    return idx
 
 
 def stats(x: torch.Tensor) -> dict:

@@ -47,7 +47,7 @@ from tensordict import TensorDict
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from torchrl_ftb.datasets.metaworld import SUCCESS_STREAK  # noqa: E402
+from torchrl_ftb.analysis import metaworld_state_returns as metaworld_returns  # noqa: E402
 from torchrl_ftb.envs import (METAWORLD_PHYSICS_PROXIES, env_kind, fit_metaworld_contact_reach,  # noqa: E402
                               fit_metaworld_hand_model, metaworld_contactless_object_path,
                               metaworld_hand_model_error, metaworld_physics_errors,
@@ -99,16 +99,6 @@ def proxy_failures(rows: list[dict], *, max_frame_stack_error: float, max_hand_m
 def physically_invalid(rows: list[dict], **limits: float) -> torch.Tensor:
     """``[n_generated]`` True where a generated trajectory fails any proxy (:func:`proxy_failures`)."""
     return torch.stack(list(proxy_failures(rows, **limits).values())).any(0)
-
-
-def metaworld_returns(task: str, trajs: TensorDict, *, horizon: int) -> torch.Tensor:
-    """``float64 [N, 3]`` oracle true returns of Meta-World trajectories: plain, with the stop-rule fill to
-    ``horizon`` steps, and the same fill after cutting each trajectory where our episodes' stop rule
-    (``SUCCESS_STREAK`` consecutive successes) would have ended it -- the data were cut there when recorded,
-    generated trajectories were not. One simulator pass per trajectory; the recipe's flow statistics use the
-    same function (:func:`~torchrl_ftb.flow.masked_true_returns`, ``flow.true_return_streak``)."""
-    return masked_true_returns(trajs, true_reward_fn(task, with_success=True), horizons=(None, horizon, horizon),
-                               streaks=(None, None, SUCCESS_STREAK))
 
 
 def oracle_improvement(task: str, original: TensorDict, final: TensorDict, generated: torch.Tensor,

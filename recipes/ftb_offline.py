@@ -17,7 +17,10 @@ preference augmentation alone); a later ``resume=true`` run continues from there
 
 The run directory receives ``config.yaml`` (resolved), ``metrics.json``, ``report.md``,
 ``plots/*.png`` (score and true return per flow step, before-vs-after histograms) and the
-logger's files (``logs/``). The final table is printed.
+logger's files (``logs/``). The final table is printed. On generated Meta-World data the
+analysis also replays the final set's generated trajectories in the simulator
+(``analysis.open_loop``: ``open_loop.json`` and a claimed-vs-replayed scatter), so the table gives
+the true return the simulator gives beside the one read off the generated states.
 
 Envs, datasets, true rewards and scores come from ``torchrl_ftb.envs`` (``make_env``,
 ``true_reward_fn``, ``normalized_score_fn``) and ``torchrl_ftb.datasets`` (``make_dataset``):
@@ -40,7 +43,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDict, TensorDictBase
 
-from torchrl_ftb.analysis import novelty, plot_flow_curves, plot_histograms
+from torchrl_ftb.analysis import novelty, open_loop_improvement, plot_flow_curves, plot_histograms, plot_scatter
 from torchrl_ftb.data import atomic_torch_save, atomic_write_text, read_checkpoint, trajectories_to_flat
 from torchrl_ftb.data.labels import SuccessTeacher, load_labels, make_teacher, save_labels
 from torchrl_ftb.datasets import dataset_kwargs, make_dataset
@@ -91,8 +94,9 @@ from torchrl_ftb.provenance import git_commit, machine_info, make_logger, write_
 FLOW_FILTERS = ("score_model", "true_return")
 STAGES = ("dataset", "labels", "score_model", "blocks", "diffuser", "flow", "bc", "eval")
 # config entries that may change between a killed run and its resume
+# (analysis: recomputed at every run's end, never checkpointed)
 RESUME_FREE_KEYS = ("resume", "overwrite", "redo_from", "stop_after", "progress", "logger", "device", "run_dir",
-                    "hydra")
+                    "hydra", "analysis")
 #: entries of another stage's section that only a later stage reads (free when that one is redone):
 #: the diffuser's sampling settings are used by the flow only
 STAGE_OWNED_KEYS = {"flow": (("diffuser", "sampler"), ("diffuser", "sample_steps"), ("diffuser", "guidance"),
@@ -471,6 +475,34 @@ def stage_bc(cfg, run: RunDir, improved, device, logger):
     return actor, summary
 
 
+def open_loop_analysis(cfg: DictConfig, run: RunDir, flow: dict, trajs: TensorDictBase, meta: dict, *,
+                       progress: bool) -> dict | None:
+    """``analysis.open_loop``: the flow's improvement in the simulator (generated Meta-World data only, else None).
+
+    Replays the final set's generated trajectories open loop from their nearest dataset start
+    (:func:`torchrl_ftb.analysis.open_loop_improvement`), writes the per-sample numbers to
+    ``open_loop.json`` and a claimed-vs-replayed scatter to ``plots/``, and returns the summary.
+    """
+    if not bool(cfg.get("analysis", {}).get("open_loop", False)):
+        return None
+    if meta.get("domain") != "metaworld" or "per_trajectory" not in meta:
+        return None  # no goals and starts to replay from (toy, locomotion, D4RL/Minari files)
+    horizon = _optional_int(cfg.flow.get("true_return_horizon")) or int(cfg.env.max_episode_steps)
+    out = open_loop_improvement(flow["trajectories"], flow["original"], torch.as_tensor(flow["source_step"]) > 0,
+                                trajs, meta, task=str(cfg.env.name), horizon=horizon,
+                                original_rows=flow.get("original_indices"), progress=progress)
+    samples = out.pop("samples")
+    write_json(run.path / "open_loop.json", {**out, "samples": samples})
+    if samples:
+        plot_scatter([s["claimed_stop_rule"] for s in samples], [s["replayed_stop_rule"] for s in samples],
+                     run.path / "plots" / "open_loop_claimed_vs_replayed.png",
+                     xlabel=f"return read off the generated states (stop rule, {horizon} steps)",
+                     ylabel="return of the actions replayed in the simulator",
+                     highlight=[s["replay_success"] for s in samples], highlight_label="replay succeeds",
+                     title=f"generated trajectories in the final set — {cfg.env.name}")
+    return out
+
+
 # ====================================================================
 # Reporting
 # ---------
@@ -509,6 +541,17 @@ def final_table(metrics: dict) -> list[tuple[str, str]]:
         rows.append((f"the same after the stop-rule cut ({int(fl['true_return_streak'])} successes): before -> after",
                      f"{fl['true_return_filled_stop_rule_mean_before']:.4g} -> "
                      f"{fl['true_return_filled_stop_rule_mean_after']:.4g}"))
+    if "open_loop" in metrics.get("analysis", {}):
+        ol = metrics["analysis"]["open_loop"]
+        r = ol["improvement"][f"stop_rule_{int(ol['horizon'])}"]["replayed"]
+        rows.append((f"true return top-k replayed in the simulator (stop rule, {int(ol['horizon'])} steps): "
+                     "mean / max before -> after",
+                     f"{r['true_return_mean_before']:.4g} -> {r['true_return_mean_after']:.4g} / "
+                     f"{r['true_return_max_before']:.4g} -> {r['true_return_max_after']:.4g}"))
+        if ol["num_generated"]:
+            rows.append(("generated in final set, replayed: return claimed -> replayed (replays that succeed)",
+                         f"{ol['claimed_stop_rule_mean_generated']:.4g} -> {ol['replayed_stop_rule_mean_generated']:.4g}"
+                         f" ({_fmt(ol['replay_success_rate'])})"))
     rows += [
         ("flow steps run / planned", f"{int(fl['flow_steps_run'])} / {int(fl['flow_steps_planned'])}"),
         ("generated trajectories in final set", _fmt(fl["fraction_generated_in_final"])),
@@ -538,9 +581,12 @@ def write_report(run: RunDir, metrics: dict, flow_stats: list[dict]) -> Path:
              "| metric | value |", "|---|---|"]
     lines += [f"| {k} | {v} |" for k, v in final_table(metrics)]
     if "true_return_mean_before" in metrics["flow"]:
-        lines += ["", "The true returns of generated trajectories are the ground-truth reward read off their generated "
-                  "states, not what executing their actions achieves; on Meta-World, `bench/open_loop.py` replays "
-                  "them in the simulator (BENCHMARKS.md, session 29: there the flow's gains vanish)."]
+        lines += ["", "The flow's true returns of generated trajectories are the ground-truth reward read off their "
+                  "generated states, not what executing their actions achieves. On generated Meta-World data the "
+                  "\"replayed in the simulator\" rows are the simulator's own: recorded rewards for dataset "
+                  "trajectories, open-loop replays of the generated ones' actions from their nearest dataset start "
+                  "(`analysis.open_loop`, per-sample numbers in `open_loop.json`; BENCHMARKS.md, session 29: there "
+                  "the flow's gains vanish)."]
     lines += ["", "## Flow steps", ""]
     if flow_stats:
         keys = list(flow_stats[0].keys())
@@ -755,6 +801,10 @@ def run(cfg: DictConfig) -> dict:
         analysis["novelty"] = {"generated_mean": nov["generated_mean"], "perturbed_mean": nov["perturbed_mean"]}
         if kind == "metaworld":
             analysis["validity"] = metaworld_validity(flow["generated"], trajs)
+    t0 = time.perf_counter()
+    if (open_loop := open_loop_analysis(cfg, run_dir, flow, trajs, meta, progress=progress)) is not None:
+        analysis["open_loop"] = open_loop
+        timed("open_loop", t0)
 
     metrics = {
         "env": cfg.env.name, "preset": cfg.preset, "teacher": teacher.name, "seed": int(cfg.seed),

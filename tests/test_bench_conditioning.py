@@ -50,19 +50,20 @@ def test_top_block_conditions_have_no_target_and_keep_the_other_blocks_statistic
 
 
 def test_open_loop_replay_returns_fill_only_where_the_stop_rule_ended_the_replay():
-    """bench/open_loop.py: a replay ended by the success streak earns its last reward to the horizon;
-    one that ran out of actions (or hit the limit) earns its own steps only."""
+    """torchrl_ftb.analysis.replay_returns (bench/open_loop.py, the recipe's analysis.open_loop): a replay
+    ended by the success streak earns its last reward to the horizon; one that ran out of actions (or hit
+    the limit) earns its own steps only."""
     import numpy as np
 
     from torchrl_ftb.datasets.metaworld import SUCCESS_STREAK
 
-    bench = load_script(ROOT / "bench" / "open_loop.py", "bench_open_loop")
+    from torchrl_ftb.analysis import nearest_start, replay_returns
     n = SUCCESS_STREAK + 5
     streak = {"reward": np.full(n, 2.0), "success": np.r_[np.zeros(5, bool), np.ones(SUCCESS_STREAK, bool)]}
     ran_out = {"reward": np.full(n, 2.0), "success": np.r_[np.zeros(6, bool), np.ones(SUCCESS_STREAK - 1, bool)]}
-    out = bench.replay_returns([streak, ran_out], horizon=100)
+    out = replay_returns([streak, ran_out], horizon=100)
     assert out[:, 0].tolist() == [2.0 * n, 2.0 * n]
     assert out[:, 1].tolist() == [2.0 * n + 2.0 * (100 - n), 2.0 * n]
-    rows, dist = bench.nearest_start(torch.tensor([[0.0, 1.0], [5.0, 5.1]]),
+    rows, dist = nearest_start(torch.tensor([[0.0, 1.0], [5.0, 5.1]]),
                                      torch.tensor([[5.0, 5.0], [0.0, 1.0], [9.0, 9.0]]))
     assert rows.tolist() == [1, 0] and dist.tolist() == pytest.approx([0.0, 0.1])

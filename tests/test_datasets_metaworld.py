@@ -175,7 +175,11 @@ def test_expert_replay_keeps_each_episodes_goal_and_start(tiny_dataset):
     short = TensorDict({"mask": mask, "next": {"reward": reward, "terminated": never}}, batch_size=[2, 3])
     plain, filled = bench.returns(short, horizon=5)
     assert plain.tolist() == [3.0, 3.0] and filled.tolist() == [9.0, 5.0]  # the last reward, repeated to 5 steps
-    assert bench.match_rows(td["observation"][[2, 0]], td["observation"]).tolist() == [2, 0]
+    from torchrl_ftb.analysis import match_rows
+
+    assert match_rows(td["observation"][[2, 0]], td["observation"]).tolist() == [2, 0]
+    with pytest.raises(ValueError, match="not rows of the dataset"):
+        match_rows(td["observation"][[2, 0]] + 1.0, td["observation"])
     # bench/flow_generated.py's oracle returns: on recorded episodes, which end by the stop rule or at the
     # time limit (150 steps here, the fill's horizon), the stop-rule column equals the filled one, and the
     # oracle's plain / filled returns are the recorded ones (up to the rewarder's approximations)
@@ -220,8 +224,13 @@ def test_open_loop_replay_of_recorded_actions_reproduces_the_episodes(tiny_datas
 def test_open_loop_bench_replays_recorded_trajectories_to_the_returns_read_off_their_states(tiny_dataset, tmp_path):
     """bench/open_loop.py end to end on a run directory whose "generated" trajectories are recorded ones:
     the simulator's replay and the reward read off the states agree, and each starts at its own episode."""
+    import json
+    import types
+
     from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
+
+    from torchrl_ftb.analysis import open_loop_improvement
 
     td, meta, cache = tiny_dataset
     root = Path(__file__).resolve().parents[1]
@@ -253,3 +262,32 @@ def test_open_loop_bench_replays_recorded_trajectories_to_the_returns_read_off_t
     imp = out["improvement"]["stop_rule_150"]["replayed"]  # the same four trajectories before and after
     assert imp["true_return_mean_after"] == pytest.approx(imp["true_return_mean_before"], rel=1e-6)  # float32 data
     assert imp["true_return_max_after"] == pytest.approx(float(filled.max()), rel=1e-5)
+    assert out["start_within_tolerance"] == 1.0 and out["replay_success_rate"] == 0.5
+    # the recipe's analysis.open_loop: the same numbers, open_loop.json, a scatter plot and two report rows
+    recipe = load_script(root / "recipes" / "ftb_offline.py", "recipe_open_loop_mw")
+    run = types.SimpleNamespace(path=tmp_path)
+    flow = {"trajectories": final, "original": original, "source_step": torch.tensor([1, 1, 0, 0]),
+            "original_indices": torch.tensor([1, 3, 0, 2])}
+    ours = recipe.open_loop_analysis(cfg, run, flow, td, meta, progress=False)
+    assert ours["improvement"] == out["improvement"] and "samples" not in ours
+    saved = json.loads((tmp_path / "open_loop.json").read_text())
+    assert [s["start_row"] for s in saved["samples"]] == [0, 2]
+    assert (tmp_path / "plots" / "open_loop_claimed_vs_replayed.png").stat().st_size > 0
+    flow_summary = {"score_mean_before": 0.0, "score_mean_after": 1.0, "flow_steps_run": 1, "flow_steps_planned": 1,
+                    "fraction_generated_in_final": 0.5}
+    table = dict(recipe.final_table({"env": "button-press-v3", "preset": "cpu", "teacher": "return", "wall_time_s": 1.0,
+                                     "eval": {"return_mean": 0.0, "return_std": 0.0, "length_mean": 1.0},
+                                     "flow": flow_summary, "score_quality": {}, "analysis": {"open_loop": ours}}))
+    row = table["true return top-k replayed in the simulator (stop rule, 150 steps): mean / max before -> after"]
+    assert row.endswith(f"/ {imp['true_return_max_before']:.4g} -> {imp['true_return_max_after']:.4g}")
+    assert table["generated in final set, replayed: return claimed -> replayed (replays that succeed)"].endswith("(0.5)")
+    # off: no replay; data without goals and starts (toy, locomotion): none either
+    assert recipe.open_loop_analysis(OmegaConf.merge(cfg, {"analysis": {"open_loop": False}}), run, flow, td, meta,
+                                     progress=False) is None
+    assert recipe.open_loop_analysis(cfg, run, flow, td, {"domain": "toy"}, progress=False) is None
+    with pytest.raises(ValueError, match="not a generated Meta-World one"):
+        open_loop_improvement(final, original, torch.tensor([1, 1, 0, 0]) > 0, td, {"domain": "toy"},
+                              task="button-press-v3", horizon=150)
+    with pytest.raises(ValueError, match=r"generated has shape \[3\], expected \[4\]"):
+        open_loop_improvement(final, original, torch.ones(3, dtype=torch.bool), td, meta,
+                              task="button-press-v3", horizon=150)

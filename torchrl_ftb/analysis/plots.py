@@ -23,7 +23,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import torch  # noqa: E402
 
-__all__ = ["plot_flow_curves", "plot_histograms", "save_figure"]
+__all__ = ["plot_flow_curves", "plot_histograms", "plot_scatter", "save_figure"]
 
 
 def save_figure(fig, path: str | os.PathLike) -> Path:
@@ -101,4 +101,43 @@ def plot_histograms(
     ax.set_xlabel(xlabel)
     ax.set_ylabel("trajectories")
     ax.set_title(title)
+    return save_figure(fig, path)
+
+
+def plot_scatter(
+    x: torch.Tensor | Sequence[float],
+    y: torch.Tensor | Sequence[float],
+    path: str | os.PathLike,
+    *,
+    xlabel: str,
+    ylabel: str,
+    title: str = "",
+    highlight: torch.Tensor | Sequence[bool] | None = None,
+    highlight_label: str = "",
+) -> Path:
+    """One point per item with the diagonal ``y = x`` (e.g. a sample's return claimed by its states vs
+    replayed in the simulator); ``highlight`` marks some points (e.g. replays that succeed).
+
+    Example:
+        >>> plot_scatter([1.0, 2.0], [0.5, 2.5], "/tmp/scatter.png", xlabel="claimed", ylabel="replayed")  # doctest: +SKIP
+    """
+    xs = torch.as_tensor(x, dtype=torch.float64).flatten()
+    ys = torch.as_tensor(y, dtype=torch.float64).flatten()
+    if xs.shape != ys.shape:
+        raise ValueError(f"plot_scatter: {xs.numel()} x values but {ys.numel()} y values")
+    fig, ax = plt.subplots(figsize=(4.4, 4.2))
+    if xs.numel():
+        mark = torch.zeros_like(xs, dtype=torch.bool) if highlight is None else torch.as_tensor(highlight).bool()
+        ax.scatter(xs[~mark].tolist(), ys[~mark].tolist(), s=14, alpha=0.6)
+        if bool(mark.any()):
+            ax.scatter(xs[mark].tolist(), ys[mark].tolist(), s=24, marker="*", label=highlight_label or None)
+            if highlight_label:
+                ax.legend()
+        both = torch.cat([xs, ys])
+        lo, hi = float(both.min()), float(both.max())
+        ax.plot([lo, hi], [lo, hi], "k--", lw=0.8)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
     return save_figure(fig, path)

@@ -1,0 +1,204 @@
+"""Open-loop replays: what a generated Meta-World trajectory's actions do in the simulator.
+
+The flow's "true return" of a generated trajectory is the task's reward read off its *generated*
+observations (:func:`torchrl_ftb.envs.true_reward_fn`): what the diffuser claims happened, not what
+executing its actions achieves. This module asks the simulator. Every generated trajectory of a final set
+is replayed from the start of the dataset episode nearest to its first observation (a sample edits, or is
+conditioned on, a trajectory that starts there): that episode's own goal and reset, then the sample's
+actions open loop, with the data's stop rule (:func:`torchrl_ftb.datasets.metaworld.replay_metaworld_actions`;
+replaying a recorded episode's actions reproduces it, tested). After the sample's last action the hand
+holds still (zero actions) until the stop rule or the time limit, as an episode runs on.
+
+The "replayed" improvement compares the simulator's own returns: recorded rewards for dataset trajectories
+(the original top-k, the final set's originals) and the replays for generated ones. The "claimed" one reads
+every return off the states, as the flow's statistics do. Returns are the plain sum and the stop-rule
+return (fill to ``horizon`` steps where the stop rule, ``SUCCESS_STREAK`` consecutive successes, ended
+the trajectory; one that ran out of actions or time earns its own steps only). Open-loop replay is the
+strictest reading: a policy cloned from a sample acts in closed loop.
+
+Only generated Meta-World datasets (:func:`torchrl_ftb.datasets.make_metaworld_dataset`) carry the goals
+and starts this needs; D4RL/Minari files and locomotion data do not.
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+from tensordict import TensorDictBase
+from tqdm.auto import tqdm
+
+from torchrl_ftb.data import stop_rule_fill
+from torchrl_ftb.data.labels import true_return
+from torchrl_ftb.datasets.metaworld import GROUPS, SUCCESS_STREAK, replay_metaworld_actions
+from torchrl_ftb.envs import true_reward_fn
+from torchrl_ftb.flow.flow import clip_actions, masked_true_returns, return_summary
+
+#: a sample "starts at" a dataset episode when its first observation is this close (max-abs, metres)
+START_TOLERANCE = 0.01
+
+
+def metaworld_state_returns(task: str, trajs: TensorDictBase, *, horizon: int) -> torch.Tensor:
+    """``float64 [N, 3]`` true returns read off Meta-World trajectories' states: plain, with the stop-rule
+    fill to ``horizon`` steps, and the same fill after cutting each trajectory where our episodes' stop rule
+    (``SUCCESS_STREAK`` consecutive successes) would have ended it -- the data were cut there when recorded,
+    generated trajectories were not. One rewarder pass per trajectory; the recipe's flow statistics use the
+    same definitions (``flow.true_return_horizon`` / ``flow.true_return_streak``).
+
+    Example:
+        >>> from torchrl_ftb.datasets import make_metaworld_dataset
+        >>> data, _ = make_metaworld_dataset("button-press-v3", episodes_per_group=1)  # doctest: +SKIP
+        >>> metaworld_state_returns("button-press-v3", data, horizon=500).shape  # doctest: +SKIP
+        torch.Size([4, 3])
+    """
+    return masked_true_returns(trajs, true_reward_fn(task, with_success=True), horizons=(None, horizon, horizon),
+                               streaks=(None, None, SUCCESS_STREAK))
+
+
+def match_rows(observation: torch.Tensor, data_observation: torch.Tensor) -> torch.Tensor:
+    """Dataset row of each trajectory that is one of the dataset's (``observation [K, H, D]`` vs ``[N, H, D]``).
+
+    Example:
+        >>> data = torch.randn(5, 3, 2)
+        >>> match_rows(data[[4, 1]], data).tolist()
+        [4, 1]
+    """
+    flat_o, flat_d = observation.flatten(1), data_observation.flatten(1)
+    idx = torch.cdist(flat_o, flat_d).argmin(-1)
+    if not torch.allclose(flat_d[idx], flat_o):
+        raise ValueError("match_rows: the trajectories are not rows of the dataset (another dataset or run?)")
+    return idx
+
+
+def nearest_start(first: torch.Tensor, data_first: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Dataset row whose first observation is nearest to each sample's, and the distance (max-abs).
+
+    Example:
+        >>> rows, dist = nearest_start(torch.tensor([[0.0, 1.0]]), torch.tensor([[5.0, 5.0], [0.0, 1.0]]))
+        >>> rows.tolist(), dist.tolist()
+        ([1], [0.0])
+    """
+    dist = (first[:, None] - data_first[None]).abs().amax(-1)
+    best = dist.min(-1)
+    return best.indices, best.values
+
+
+def replay_returns(episodes: list[dict], *, horizon: int) -> torch.Tensor:
+    """``float64 [N, 2]``: plain sum and stop-rule return of open-loop replays (filled to ``horizon`` only
+    where the stop rule, ``SUCCESS_STREAK`` consecutive successes, ended the replay).
+
+    Example:
+        >>> import numpy as np
+        >>> ep = {"reward": np.ones(3), "success": np.zeros(3, bool)}  # ran out of actions: no fill
+        >>> replay_returns([ep], horizon=10).tolist()
+        [[3.0, 3.0]]
+    """
+    out = torch.zeros(len(episodes), 2, dtype=torch.float64)
+    for i, ep in enumerate(episodes):
+        reward = torch.as_tensor(ep["reward"], dtype=torch.float64)
+        success = torch.as_tensor(ep["success"], dtype=torch.bool)
+        n = reward.numel()
+        fired = n >= SUCCESS_STREAK and bool(success[-SUCCESS_STREAK:].all())  # the replay stops at the streak
+        # the project's one fill rule (stop_rule_fill); a replay no stop rule ended counts as terminated there
+        ended = torch.zeros(1, n, dtype=torch.bool)
+        ended[0, -1] = not fired
+        last, weight = stop_rule_fill(torch.ones(1, n, dtype=torch.bool), horizon=horizon, terminated=ended)
+        out[i, 0] = reward.sum()
+        out[i, 1] = reward.sum() + float(weight[0]) * float(reward[last[0]])
+    return out
+
+
+def open_loop_improvement(
+    final: TensorDictBase,
+    original: TensorDictBase,
+    generated: torch.Tensor,
+    data: TensorDictBase,
+    meta: dict,
+    *,
+    task: str,
+    horizon: int,
+    original_rows: torch.Tensor | None = None,
+    hold: bool = True,
+    progress: bool = False,
+) -> dict:
+    """The flow's improvement (original top-k -> final set) claimed by the states and replayed in the simulator.
+
+    Args:
+        final: the final set (``observation``, ``action``, ``mask``; ``[K, H]``, unnormalised).
+        original: the original top-k the flow started from (rows of ``data``).
+        generated: ``bool [K]``, which final-set rows are generated (``source_step > 0``).
+        data: the generated Meta-World dataset the run used (recorded rewards, successes, starts).
+        meta: its metadata (:func:`~torchrl_ftb.datasets.make_metaworld_dataset`: ``seed``, ``max_steps``,
+            ``groups``, ``per_trajectory``).
+        task: the Meta-World v3 task.
+        horizon: the stop-rule return's horizon (the time limit, 500).
+        original_rows: dataset rows of ``original`` (``FlowResult.original_indices``); None: matched.
+        hold: after a sample's last action, hold still (zero actions) until the stop rule or the time
+            limit; False stops the replay there.
+        progress: a progress bar over the replays.
+
+    Returns:
+        ``num_generated``, ``start_within_tolerance`` / ``start_distance_median`` (how far generated first
+        observations are from the nearest dataset start), ``replay_success_rate``, ``improvement``
+        (``{"plain" | "stop_rule_<horizon>": {"claimed" | "replayed": return_summary}}``) and ``samples``
+        (one dict per generated trajectory: lengths, start row and distance, claimed and replayed returns,
+        whether the replay succeeded).
+
+    Example:
+        >>> out = open_loop_improvement(flow.trajectories, flow.original, flow.source_step > 0,
+        ...                             data, meta, task="button-press-v3", horizon=500)  # doctest: +SKIP
+        >>> out["improvement"]["stop_rule_500"]["replayed"]["true_return_mean_after"]  # doctest: +SKIP
+    """
+    if meta.get("domain") != "metaworld" or "per_trajectory" not in meta:
+        raise ValueError(f"open_loop_improvement: {task}'s dataset is not a generated Meta-World one "
+                         f"(its goals and starts are needed to replay from them)")
+    generated = torch.as_tensor(generated, dtype=torch.bool).cpu()
+    if generated.shape != final.batch_size[:1]:
+        raise ValueError(f"open_loop_improvement: generated has shape {list(generated.shape)}, "
+                         f"expected [{final.batch_size[0]}] (one flag per final-set trajectory)")
+    final = final.select("observation", "action", "mask").to("cpu")
+    original = original.select("observation", "action", "mask").to("cpu")
+    data_obs = data["observation"]
+    # claimed: read off the states, as the flow's statistics (for recorded states too: exact up to the
+    # rewarder's approximations, e.g. the last step's next observation, about 1 % on a return)
+    claimed0 = metaworld_state_returns(task, clip_actions(original.clone(), 1.0), horizon=horizon)
+    claimed1 = metaworld_state_returns(task, clip_actions(final.clone(), 1.0), horizon=horizon)
+    # the simulator's own: recorded rewards for dataset trajectories, open-loop replays for generated ones
+    recorded = torch.stack([true_return(data).double(), true_return(data, horizon=horizon).double()], -1)
+    rows = match_rows(original["observation"].float(), data_obs) if original_rows is None else original_rows.cpu()
+    real0 = recorded[rows]
+    real1 = torch.zeros(final.batch_size[0], 2, dtype=torch.float64)
+    if bool((~generated).any()):
+        real1[~generated] = recorded[match_rows(final[~generated]["observation"].float(), data_obs)]
+    gen = final[generated]
+    start_row, start_dist = nearest_start(gen["observation"][:, 0].float(), data_obs[:, 0])
+    per, groups = meta["per_trajectory"], list(meta["groups"])
+    jobs = [(GROUPS.index(groups[int(per["group"][r])]), int(per["episode"][r])) for r in start_row.tolist()]
+    lengths = gen["mask"].sum(-1).tolist()
+    limit = int(meta["max_steps"])
+    actions = [gen["action"][i, :n].numpy() for i, n in enumerate(lengths)]
+    if hold:
+        actions = [np.concatenate([a, np.zeros((limit - len(a), a.shape[-1]), dtype=a.dtype)]) for a in actions]
+    bar = tqdm(total=len(jobs), desc=f"{task} open-loop replays", disable=not progress)
+    episodes = replay_metaworld_actions(task, jobs, actions, seed=int(meta["seed"]), max_steps=limit,
+                                        on_episode=lambda: bar.update(1)) if jobs else []
+    bar.close()
+    replayed = replay_returns(episodes, horizon=horizon)
+    real1[generated] = replayed
+    success = [bool(ep["success"].any()) for ep in episodes]
+    samples = [{"length": int(n), "replay_length": len(ep["reward"]), "start_row": int(r), "start_distance": float(d),
+                "claimed_plain": float(c[0]), "claimed_stop_rule": float(c[2]), "replayed_plain": float(p[0]),
+                "replayed_stop_rule": float(p[1]), "replay_success": s}
+               for n, ep, r, d, c, p, s in zip(lengths, episodes, start_row.tolist(), start_dist.tolist(),
+                                               claimed1[generated], replayed, success)]
+    improvement = {name: {"claimed": return_summary(claimed0[:, c], claimed1[:, c]),
+                          "replayed": return_summary(real0[:, j], real1[:, j])}
+                   for j, c, name in ((0, 0, "plain"), (1, 2, f"stop_rule_{horizon}"))}
+    n = len(samples)
+    return {"num_generated": n, "hold_after_last_action": hold, "horizon": horizon,
+            "start_tolerance": START_TOLERANCE,
+            "start_within_tolerance": float((start_dist <= START_TOLERANCE).double().mean()) if n else None,
+            "start_distance_median": float(start_dist.median()) if n else None,
+            "start_distance_max": float(start_dist.max()) if n else None,
+            "replay_success_rate": float(np.mean(success)) if n else None,
+            "claimed_stop_rule_mean_generated": float(claimed1[generated, 2].mean()) if n else None,
+            "replayed_stop_rule_mean_generated": float(replayed[:, 1].mean()) if n else None,
+            "improvement": improvement, "samples": samples}
