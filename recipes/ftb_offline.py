@@ -100,7 +100,7 @@ RESUME_FREE_KEYS = ("resume", "overwrite", "redo_from", "stop_after", "progress"
 #: entries of another stage's section that only a later stage reads (free when that one is redone):
 #: the diffuser's sampling settings are used by the flow only
 STAGE_OWNED_KEYS = {"flow": (("diffuser", "sampler"), ("diffuser", "sample_steps"), ("diffuser", "guidance"),
-                              ("diffuser", "strength"))}
+                              ("diffuser", "strength"), ("diffuser", "inpaint_start"))}
 #: what each stage leaves under ``checkpoints/`` (removed by ``redo_from``)
 STAGE_CHECKPOINTS = {"labels": ("labels",), "score_model": ("score_model.pt",), "blocks": ("blocks.pt",),
                      "diffuser": ("diffuser",), "flow": ("flow.pt",), "bc": ("bc.pt",)}
@@ -297,8 +297,16 @@ def make_sampler(cfg, diffuser) -> DiffusionSampler:
     device = diffuser.normalizer.mean.device
     generator = torch.Generator(device=device).manual_seed(int(cfg.seed))
     return DiffusionSampler(diffuser, sampler=s["sampler"], steps=s["sample_steps"], guidance=s["guidance"],
-                            strength=sdedit_strength(cfg), generator=generator,
+                            strength=sdedit_strength(cfg), inpaint_start=inpaint_start(cfg), generator=generator,
                             autocast_bf16=bool(cfg.diffuser.autocast_bf16))
+
+
+def inpaint_start(cfg: DictConfig) -> bool:
+    """``diffuser.inpaint_start``: each flow sample starts where its condition starts (not the paper's)."""
+    value = cfg.diffuser.get("inpaint_start", False)
+    if not isinstance(value, bool):
+        raise ValueError(f"diffuser.inpaint_start={value!r}: must be true or false")
+    return value
 
 
 def sdedit_strength(cfg: DictConfig) -> float:
@@ -632,6 +640,7 @@ def run(cfg: DictConfig) -> dict:
                              f"env.name={cfg.env.name!r} episodes terminate (falls) and the diffuser's samples carry "
                              f"no termination flag: leave it null")
     sdedit_strength(cfg)  # a malformed strength fails now, not after the diffuser's training
+    inpaint_start(cfg)
     if flow_filter(cfg) == "true_return" and not cfg.flow.true_reward:
         raise ValueError("flow.filter=true_return ranks and accepts by the ground-truth return: it needs "
                          "flow.true_reward=true")

@@ -580,6 +580,39 @@ def test_observation_structure_lagged_and_time_constant_dims(data, tmp_path):
         make_diffuser("tiny", obs_dim=7, action_dim=2, horizon=H, lagged_dims=[(7, 0)])
 
 
+@pytest.mark.parametrize("sampler", ["ddpm", "ddim", "dpm++"])
+def test_inpaint_start_holds_each_samples_first_observation_and_goal(data, sampler):
+    """inpaint_start: a sample starts exactly where its condition starts (the whole first observation,
+    stacked frame included) and keeps the condition's goal at every step; without it, it starts anywhere."""
+    data7 = _with_stacked_frame_and_goal(data)
+    torch.manual_seed(0)
+    d = make_diffuser("tiny", obs_dim=7, action_dim=2, horizon=H, data=data7,
+                      lagged_dims=[(3, 0), (4, 1), (5, 2)], time_constant_dims=[6])
+    cond = data7[4:10]
+    g = lambda: torch.Generator().manual_seed(1)  # noqa: E731
+    free = d.generate(cond, sampler=sampler, steps=4, generator=g(), use_ema=False)
+    held = d.generate(cond, sampler=sampler, steps=4, generator=g(), use_ema=False, inpaint_start=True)
+    first = cond["observation"][:, 0]
+    torch.testing.assert_close(held["observation"][:, 0], first, atol=1e-5, rtol=1e-5)
+    assert (free["observation"][:, 0] - first).abs().amax() > 1e-2
+    m = held["mask"]
+    goal = held["observation"][..., 6]
+    torch.testing.assert_close(goal[m], first[:, 6:7].expand_as(goal)[m], atol=1e-5, rtol=1e-5)
+    assert bool(m[:, 0].all())
+    # the flow's module form, and an SDEdit edit, start there too; a plain layout holds the first step only
+    module = DiffusionSampler(d, sampler=sampler, steps=4, seed=0, inpaint_start=True, strength=0.5, use_ema=False)
+    edits = module(TensorDict({"condition": cond}, batch_size=[6]))["sample"]
+    torch.testing.assert_close(edits["observation"][:, 0], first, atol=1e-5, rtol=1e-5)
+    plain = _diffuser(data)
+    out = plain.generate(data[:3], sampler=sampler, steps=4, generator=g(), use_ema=False, inpaint_start=True)
+    torch.testing.assert_close(out["observation"][:, 0], data["observation"][:3, 0], atol=1e-5, rtol=1e-5)
+    # bad input: a start batch of another shape, an unconditional diffuser
+    with pytest.raises(ValueError, match=r"inpaint_start needs a trajectory batch \[3, 12\]"):
+        plain.generate(data[:3], sampler=sampler, steps=2, init=data[:2], use_ema=False, inpaint_start=True)
+    with pytest.raises(ValueError, match="unconditional"):
+        DiffusionSampler(_diffuser(data, unconditional=True), inpaint_start=True)
+
+
 def test_parse_overrides_reads_yaml_values_and_rejects_bare_keys():
     assert parse_overrides(["score_condition=true", "hidden_dim=16", "name=a=b"]) == {
         "score_condition": True, "hidden_dim": 16, "name": "a=b"}

@@ -396,13 +396,19 @@ def test_sdedit_strength_reaches_the_flow_sampler(tmp_path):
     assert sampler.strength == 0.3
     edits = sampler(TensorDict({"condition": data[:2]}, batch_size=[2]))["sample"]
     assert edits["observation"].shape == data[:2]["observation"].shape
+    assert not sampler.inpaint_start
+    held = recipe.make_sampler(_cfg(tmp_path, "diffuser.inpaint_start=true"), diffuser)
+    out = held(TensorDict({"condition": data[:2]}, batch_size=[2]))["sample"]
+    torch.testing.assert_close(out["observation"][:, 0], data[:2]["observation"][:, 0], atol=1e-5, rtol=1e-5)
+    with pytest.raises(ValueError, match="diffuser.inpaint_start='yes': must be true or false"):
+        recipe.inpaint_start(_cfg(tmp_path, "diffuser.inpaint_start=yes"))
 
 
 def test_options_added_later_resume_old_run_directories_at_their_no_op_defaults():
     """A run directory written before an option existed resumes when the option is at its no-op value."""
     recipe = _recipe()
     old = {"diffuser": {"guidance": None}, "flow": {"top_k": 8}, "score_model": {}}
-    new = {"diffuser": {"guidance": None, "strength": 1.0}, "flow": {"top_k": 8, "filter": "score_model",
+    new = {"diffuser": {"guidance": None, "strength": 1.0, "inpaint_start": False}, "flow": {"top_k": 8, "filter": "score_model",
                                                                        "ensemble_rule": "mean"},
            "score_model": {"num_members": 1}}
     assert recipe._diff_keys(new, old) == []

@@ -284,6 +284,21 @@ class TrajectoryDiffuser(nn.Module):
         full[..., self.diffused_index.to(z.device)] = z
         return full
 
+    def start_known(self, x_source: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(where, values)`` holding a model-space batch's first-step observation (and its validity, +1)
+        and, at every step, its time-constant dims at their first-step value (inpainting a start)."""
+        data_dim = self.diffused_index.to(x_source.device)
+        obs = torch.cat([data_dim < self.obs_dim, torch.ones(1, dtype=torch.bool, device=x_source.device)])
+        where = torch.zeros(x_source.shape, dtype=torch.bool, device=x_source.device)
+        where[:, 0] = obs
+        values = x_source.clone()
+        if self.time_constant_dims:
+            const = torch.isin(data_dim, torch.tensor(self.time_constant_dims, device=x_source.device))
+            const = torch.cat([const, torch.zeros(1, dtype=torch.bool, device=x_source.device)])
+            where[:, :, const] = True
+            values[:, :, const] = x_source[:, :1, const]
+        return where, values
+
     @staticmethod
     def detect_mask(validity: torch.Tensor) -> torch.Tensor:
         """Prefix mask ``[B, H]`` that best agrees with the validity channel ``[B, H]``.
@@ -406,6 +421,7 @@ class TrajectoryDiffuser(nn.Module):
         progress: bool = False,
         init: TensorDictBase | None = None,
         strength: float = 1.0,
+        inpaint_start: bool = False,
     ) -> TensorDict:
         """Generate trajectories, one per condition (or ``num_samples`` unconditionally).
 
@@ -429,6 +445,12 @@ class TrajectoryDiffuser(nn.Module):
             init: trajectory batch ``[B, H]`` to edit (e.g. the condition itself).
             strength: share of the sampler's steps run from the noised ``init``, in (0, 1]
                 (1: pure noise, ``init`` unused).
+            inpaint_start: start each sample where its ``init`` (else its condition) starts: the
+                first step's observation is held at that trajectory's during sampling
+                (:meth:`DiffusionProcess.sample`'s ``known``), and so are the time-constant
+                dimensions (the goal, with ``observation_structure``) at every step. Not the paper's
+                (its samples start anywhere); a sample of a real start can be replayed in the
+                simulator from there.
 
         Returns:
             Trajectory batch ``[B, H]`` with ``observation``, ``action``, ``mask`` (from the
@@ -476,9 +498,20 @@ class TrajectoryDiffuser(nn.Module):
                                      f"a 'mask', got {list(init.batch_size)}")
                 init = init.to(device)
                 x_init = self.model_input(self.raw_data_from_td(init, name="init"), init.get("mask"))
+            known = None
+            if inpaint_start:
+                source = init if init is not None else condition
+                if source is None:
+                    raise ValueError("generate: inpaint_start needs the trajectories to start from (init= or a condition)")
+                if tuple(source.batch_size) != (num_samples, horizon) or "mask" not in source.keys():
+                    raise ValueError(f"generate: inpaint_start needs a trajectory batch [{num_samples}, {horizon}] with "
+                                     f"a 'mask' to start from, got {list(source.batch_size)}")
+                source = source.to(device)
+                known = self.start_known(self.model_input(self.raw_data_from_td(source, name="inpaint_start"),
+                                                          source.get("mask")))
             x = self.process.sample(denoise, (num_samples, horizon, self.transition_dim), sampler=sampler,
                                     steps=steps, generator=generator, device=device, progress=progress,
-                                    x0_bounds=self.x0_bounds(), x_init=x_init, strength=strength)
+                                    x0_bounds=self.x0_bounds(), x_init=x_init, strength=strength, known=known)
         finally:
             nets.train(was_training)
         return self.decode(x)

@@ -162,8 +162,13 @@ class DiffusionProcess:
         x0_bounds: tuple[torch.Tensor, torch.Tensor] | None = None,
         x_init: torch.Tensor | None = None,
         strength: float = 1.0,
+        known: tuple[torch.Tensor, torch.Tensor] | None = None,
     ) -> torch.Tensor:
         """Run the reverse process from pure noise, or from a noised ``x_init`` (SDEdit).
+
+        With ``known = (where, values)`` the entries ``where`` are held at ``values`` from the start and
+        after every step (inpainting as Janner et al. 2022's Diffuser conditions on the current state:
+        the clean value, not a noised one), so e.g. a trajectory starts at a given state.
 
         With ``x_init`` and ``strength < 1`` (SDEdit, Meng et al. 2022; diffusers' img2img
         ``strength``), the chain runs only the last ``n = max(1, round(strength * steps))`` of
@@ -184,6 +189,8 @@ class DiffusionProcess:
                 (``None``: no clipping).
             x_init: model-space start ``shape`` for an edit (``None``: pure noise).
             strength: share of the sampler's steps run from the noised ``x_init``, in (0, 1].
+            known: ``(where, values)``: a bool mask broadcastable to ``shape`` and model-space values of
+                ``shape``; those entries are fixed (``None``: nothing fixed).
 
         Returns:
             ``x_0`` estimate, float32 ``shape``.
@@ -205,6 +212,17 @@ class DiffusionProcess:
                 sched.set_begin_index(start)
             t0 = timesteps[:1].to(x.device).long().expand(x.shape[0])
             x = self.add_noise(x_init.to(x.device, torch.float32), x, t0)  # x: the drawn noise
+        if known is not None:
+            where, values = known[0].to(x.device), known[1].to(x.device, torch.float32)
+            if tuple(values.shape) != tuple(shape):
+                raise ValueError(f"sample: known values have shape {list(values.shape)}, expected {list(shape)}")
+
+            def hold(z: torch.Tensor) -> torch.Tensor:
+                return torch.where(where, values, z)
+        else:
+            def hold(z: torch.Tensor) -> torch.Tensor:
+                return z
+        x = hold(x)
         for t in tqdm(timesteps, desc=f"sampling ({sampler})", disable=not progress, leave=False):
             t_batch = t.to(x.device).long().expand(x.shape[0])
             eps = self.to_eps(x, denoise(x, t_batch).float(), t_batch)
@@ -213,5 +231,5 @@ class DiffusionProcess:
             kwargs = {"generator": generator} if sampler == "ddpm" else {}
             if sampler == "ddim":
                 kwargs["eta"] = 0.0
-            x = sched.step(eps, t, x, **kwargs).prev_sample
+            x = hold(sched.step(eps, t, x, **kwargs).prev_sample)
         return x

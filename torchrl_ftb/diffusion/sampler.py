@@ -55,6 +55,9 @@ class DiffusionSampler(TensorDictModuleBase):
         strength: SDEdit strength in (0, 1]: below 1 each sample is an edit of its condition
             (the chain starts from the condition noised to that share of the ``steps``;
             :meth:`TrajectoryDiffuser.generate`). 1 (default, the paper): from pure noise.
+        inpaint_start: each sample starts where its condition starts (its first observation, and
+            the goal with ``observation_structure``, held during sampling;
+            :meth:`TrajectoryDiffuser.generate`). False (default, the paper): anywhere.
     """
 
     def __init__(
@@ -74,6 +77,7 @@ class DiffusionSampler(TensorDictModuleBase):
         num_samples: int | None = None,
         progress: bool = False,
         strength: float = 1.0,
+        inpaint_start: bool = False,
     ) -> None:
         super().__init__()
         if sampler not in SAMPLERS:
@@ -82,7 +86,11 @@ class DiffusionSampler(TensorDictModuleBase):
             raise ValueError(f"DiffusionSampler: strength must be in (0, 1], got {strength}")
         if strength < 1.0 and diffuser.unconditional:
             raise ValueError("DiffusionSampler: strength < 1 edits the condition; this diffuser is unconditional")
+        if inpaint_start and diffuser.unconditional:
+            raise ValueError("DiffusionSampler: inpaint_start starts each sample where its condition starts; "
+                             "this diffuser is unconditional")
         self.strength = float(strength)
+        self.inpaint_start = bool(inpaint_start)
         self.diffuser = diffuser
         self.sampler, self.steps, self.guidance = sampler, int(steps), float(guidance)
         self.seed, self.generator = seed, generator
@@ -113,7 +121,8 @@ class DiffusionSampler(TensorDictModuleBase):
             sample = self.diffuser.generate(None, num_samples=n, **opts)
         else:
             chunk = self.max_batch or cond.batch_size[0]
-            parts = [self.diffuser.generate(cond[i:i + chunk], init=cond[i:i + chunk], strength=self.strength, **opts)
+            parts = [self.diffuser.generate(cond[i:i + chunk], init=cond[i:i + chunk], strength=self.strength,
+                                            inpaint_start=self.inpaint_start, **opts)
                      for i in range(0, cond.batch_size[0], chunk)]
             sample = torch.cat(parts, 0) if len(parts) > 1 else parts[0]
         if tensordict.device is not None:
