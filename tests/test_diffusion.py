@@ -607,7 +607,7 @@ def test_inpaint_start_holds_each_samples_first_observation_and_goal(data, sampl
     out = plain.generate(data[:3], sampler=sampler, steps=4, generator=g(), use_ema=False, inpaint_start=True)
     torch.testing.assert_close(out["observation"][:, 0], data["observation"][:3, 0], atol=1e-5, rtol=1e-5)
     # bad input: a start batch of another shape, an unconditional diffuser
-    with pytest.raises(ValueError, match=r"inpaint_start needs a trajectory batch \[3, 12\]"):
+    with pytest.raises(ValueError, match=r"'inpaint_start' must be a trajectory batch \[3, 12\]"):
         plain.generate(data[:3], sampler=sampler, steps=2, init=data[:2], use_ema=False, inpaint_start=True)
     with pytest.raises(ValueError, match="unconditional"):
         DiffusionSampler(_diffuser(data, unconditional=True), inpaint_start=True)

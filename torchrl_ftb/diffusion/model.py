@@ -284,6 +284,15 @@ class TrajectoryDiffuser(nn.Module):
         full[..., self.diffused_index.to(z.device)] = z
         return full
 
+    def _model_batch(self, td: TensorDictBase, shape: tuple[int, int], *, name: str,
+                     device: torch.device) -> torch.Tensor:
+        """Model-space form of a trajectory batch that must be ``shape`` with a ``mask`` (a clear error else)."""
+        if tuple(td.batch_size) != tuple(shape) or "mask" not in td.keys():
+            raise ValueError(f"generate: {name!r} must be a trajectory batch {list(shape)} with a 'mask', "
+                             f"got {list(td.batch_size)}")
+        td = td.to(device)
+        return self.model_input(self.raw_data_from_td(td, name=name), td.get("mask"))
+
     def start_known(self, x_source: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``(where, values)`` holding a model-space batch's first-step observation (and its validity, +1)
         and, at every step, its time-constant dims at their first-step value (inpainting a start)."""
@@ -493,22 +502,14 @@ class TrajectoryDiffuser(nn.Module):
             if strength < 1.0:
                 if init is None:
                     raise ValueError("generate: strength < 1 edits a trajectory; pass init=")
-                if tuple(init.batch_size) != (num_samples, horizon) or "mask" not in init.keys():
-                    raise ValueError(f"generate: 'init' must be a trajectory batch [{num_samples}, {horizon}] with "
-                                     f"a 'mask', got {list(init.batch_size)}")
-                init = init.to(device)
-                x_init = self.model_input(self.raw_data_from_td(init, name="init"), init.get("mask"))
+                x_init = self._model_batch(init, (num_samples, horizon), name="init", device=device)
             known = None
             if inpaint_start:
                 source = init if init is not None else condition
                 if source is None:
                     raise ValueError("generate: inpaint_start needs the trajectories to start from (init= or a condition)")
-                if tuple(source.batch_size) != (num_samples, horizon) or "mask" not in source.keys():
-                    raise ValueError(f"generate: inpaint_start needs a trajectory batch [{num_samples}, {horizon}] with "
-                                     f"a 'mask' to start from, got {list(source.batch_size)}")
-                source = source.to(device)
-                known = self.start_known(self.model_input(self.raw_data_from_td(source, name="inpaint_start"),
-                                                          source.get("mask")))
+                known = self.start_known(self._model_batch(source, (num_samples, horizon), name="inpaint_start",
+                                                           device=device))
             x = self.process.sample(denoise, (num_samples, horizon, self.transition_dim), sampler=sampler,
                                     steps=steps, generator=generator, device=device, progress=progress,
                                     x0_bounds=self.x0_bounds(), x_init=x_init, strength=strength, known=known)
