@@ -560,6 +560,10 @@ def final_table(metrics: dict) -> list[tuple[str, str]]:
             rows.append(("generated in final set, replayed: return claimed -> replayed (replays that succeed)",
                          f"{ol['claimed_stop_rule_mean_generated']:.4g} -> {ol['replayed_stop_rule_mean_generated']:.4g}"
                          f" ({_fmt(ol['replay_success_rate'])})"))
+            rows.append(("generated in final set, first step: off the nearest dataset start, m (median) / hand-object "
+                         "distance, m: sample vs that start",
+                         f"{_fmt(ol['start_distance_median'])} / {_fmt(ol['start_hand_object_median'])} vs "
+                         f"{_fmt(ol['data_start_hand_object_median'])}"))
     rows += [
         ("flow steps run / planned", f"{int(fl['flow_steps_run'])} / {int(fl['flow_steps_planned'])}"),
         ("generated trajectories in final set", _fmt(fl["fraction_generated_in_final"])),

@@ -263,6 +263,7 @@ def test_open_loop_bench_replays_recorded_trajectories_to_the_returns_read_off_t
     assert imp["true_return_mean_after"] == pytest.approx(imp["true_return_mean_before"], rel=1e-6)  # float32 data
     assert imp["true_return_max_after"] == pytest.approx(float(filled.max()), rel=1e-5)
     assert out["start_within_tolerance"] == 1.0 and out["replay_success_rate"] == 0.5
+    assert out["start_hand_object_median"] == out["data_start_hand_object_median"] > 0  # the recorded starts
     # the recipe's analysis.open_loop: the same numbers, open_loop.json, a scatter plot and two report rows
     recipe = load_script(root / "recipes" / "ftb_offline.py", "recipe_open_loop_mw")
     run = types.SimpleNamespace(path=tmp_path)
@@ -281,6 +282,8 @@ def test_open_loop_bench_replays_recorded_trajectories_to_the_returns_read_off_t
     row = table["true return top-k replayed in the simulator (stop rule, 150 steps): mean / max before -> after"]
     assert row.endswith(f"/ {imp['true_return_max_before']:.4g} -> {imp['true_return_max_after']:.4g}")
     assert table["generated in final set, replayed: return claimed -> replayed (replays that succeed)"].endswith("(0.5)")
+    assert table["generated in final set, first step: off the nearest dataset start, m (median) / hand-object "
+                 "distance, m: sample vs that start"].startswith("0 / ")
     # off: no replay; data without goals and starts (toy, locomotion): none either
     assert recipe.open_loop_analysis(OmegaConf.merge(cfg, {"analysis": {"open_loop": False}}), run, flow, td, meta,
                                      progress=False) is None

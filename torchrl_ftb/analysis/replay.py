@@ -29,7 +29,7 @@ from tqdm.auto import tqdm
 from torchrl_ftb.data import stop_rule_fill
 from torchrl_ftb.data.labels import true_return
 from torchrl_ftb.datasets.metaworld import GROUPS, SUCCESS_STREAK, replay_metaworld_actions
-from torchrl_ftb.envs import true_reward_fn
+from torchrl_ftb.envs import metaworld_hand_object_distance, true_reward_fn
 from torchrl_ftb.flow.flow import clip_actions, masked_true_returns, return_summary
 
 #: a sample "starts at" a dataset episode when its first observation is this close (max-abs, metres)
@@ -137,7 +137,10 @@ def open_loop_improvement(
 
     Returns:
         ``num_generated``, ``start_within_tolerance`` / ``start_distance_median`` (how far generated first
-        observations are from the nearest dataset start), ``replay_success_rate``, ``improvement``
+        observations are from the nearest dataset start), ``start_hand_object_median`` /
+        ``data_start_hand_object_median`` (the hand-object distance at the samples' first step and at
+        those dataset starts: a sample that starts nearer the object claims an easier task than its
+        replay gets), ``replay_success_rate``, ``improvement``
         (``{"plain" | "stop_rule_<horizon>": {"claimed" | "replayed": return_summary}}``) and ``samples``
         (one dict per generated trajectory: lengths, start row and distance, claimed and replayed returns,
         whether the replay succeeded).
@@ -184,11 +187,16 @@ def open_loop_improvement(
     replayed = replay_returns(episodes, horizon=horizon)
     real1[generated] = replayed
     success = [bool(ep["success"].any()) for ep in episodes]
+    # where a sample starts: how far its hand is from the object, beside the dataset start it is replayed from
+    reach = metaworld_hand_object_distance(gen["observation"][:, 0].double())
+    data_reach = metaworld_hand_object_distance(data_obs[start_row, 0].double())
     samples = [{"length": int(n), "replay_length": len(ep["reward"]), "start_row": int(r), "start_distance": float(d),
+                "start_hand_object": float(h), "data_start_hand_object": float(hd),
                 "claimed_plain": float(c[0]), "claimed_stop_rule": float(c[2]), "replayed_plain": float(p[0]),
                 "replayed_stop_rule": float(p[1]), "replay_success": s}
-               for n, ep, r, d, c, p, s in zip(lengths, episodes, start_row.tolist(), start_dist.tolist(),
-                                               claimed1[generated], replayed, success)]
+               for n, ep, r, d, h, hd, c, p, s in zip(lengths, episodes, start_row.tolist(), start_dist.tolist(),
+                                                      reach.tolist(), data_reach.tolist(), claimed1[generated],
+                                                      replayed, success)]
     improvement = {name: {"claimed": return_summary(claimed0[:, c], claimed1[:, c]),
                           "replayed": return_summary(real0[:, j], real1[:, j])}
                    for j, c, name in ((0, 0, "plain"), (1, 2, f"stop_rule_{horizon}"))}
@@ -198,6 +206,8 @@ def open_loop_improvement(
             "start_within_tolerance": float((start_dist <= START_TOLERANCE).double().mean()) if n else None,
             "start_distance_median": float(start_dist.median()) if n else None,
             "start_distance_max": float(start_dist.max()) if n else None,
+            "start_hand_object_median": float(reach.median()) if n else None,
+            "data_start_hand_object_median": float(data_reach.median()) if n else None,
             "replay_success_rate": float(np.mean(success)) if n else None,
             "claimed_stop_rule_mean_generated": float(claimed1[generated, 2].mean()) if n else None,
             "replayed_stop_rule_mean_generated": float(replayed[:, 1].mean()) if n else None,

@@ -676,13 +676,26 @@ def physics_limit(spec: float | str, real: torch.Tensor, *, field: str) -> float
     return limit
 
 
+def metaworld_hand_object_distance(observation: torch.Tensor) -> torch.Tensor:
+    """Distance (metres) between the hand (``obs[..., 0:3]``) and the first object (``obs[..., 4:7]``) of
+    Meta-World observations ``[..., 39]``.
+
+    Example:
+        >>> obs = torch.zeros(2, 39)
+        >>> obs[1, 4] = 0.3
+        >>> metaworld_hand_object_distance(obs).tolist()
+        [0.0, 0.30000001192092896]
+    """
+    return (observation[..., 0:3] - observation[..., 4:7]).norm(dim=-1)
+
+
 def _hand_object_steps(trajectories: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Per transition ``[N, H - 1]``: the object's displacement (``obs[4:7]``), the smaller hand-object
-    distance of its two ends (hand: ``obs[0:3]``) and the pair mask."""
+    distance of its two ends (:func:`metaworld_hand_object_distance`) and the pair mask."""
     obs, pair = _metaworld_steps(trajectories, "Meta-World contact check")
     obs = obs.double()
-    hand, obj = obs[..., 0:3], obs[..., 4:7]
-    dist = (hand - obj).norm(dim=-1)
+    obj = obs[..., 4:7]
+    dist = metaworld_hand_object_distance(obs)
     return (obj[:, 1:] - obj[:, :-1]).norm(dim=-1), torch.minimum(dist[:, 1:], dist[:, :-1]), pair
 
 
