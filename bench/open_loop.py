@@ -10,10 +10,15 @@ instead of holding still until the stop rule or the time limit.
 Usage::
 
     python bench/open_loop.py --run-dirs RUN [RUN ...] --horizon 500 --out bench/results/open_loop.json
+    python bench/open_loop.py --summarize bench/results/open_loop_*.json bench/results/table1_v2_x/ftb__*.json
+
+``--summarize`` prints one Markdown row per run of this bench's results files, or of table1 cell files whose
+run had the recipe's ``analysis.open_loop`` (policy success then in the last column).
 """
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 
@@ -45,9 +50,72 @@ def open_loop(run: Path, *, horizon: int, progress: bool, hold: bool = True) -> 
             "diffuser_strength": float(cfg.diffuser.get("strength", 1.0)), **out}
 
 
+SUMMARY_HEADER = ("| run | task, seed | generated in final set | start within 1 cm (median) | hand-object at the start: "
+                  "sample vs data, m | sample return, claimed → replayed | replays that succeed | mean: top-k → final, "
+                  "claimed / **replayed** | max: top-k → final, claimed / **replayed** | policy |")
+
+
+def _pct(v) -> str:
+    return "—" if v is None else f"{100 * v:.0f}%"
+
+
+def _with_sample_summary(entry: dict) -> dict:
+    """Files written before the summary fields existed (session 29) derive them from their samples."""
+    samples = entry.get("samples")
+    if not samples or "start_within_tolerance" in entry:
+        return entry
+    mean = lambda k: sum(float(x[k]) for x in samples) / len(samples)  # noqa: E731
+    dist = sorted(x["start_distance"] for x in samples)
+    return {**entry, "start_within_tolerance": sum(d <= 0.01 for d in dist) / len(dist),
+            "start_distance_median": dist[(len(dist) - 1) // 2],  # torch.median's lower median
+            "replay_success_rate": mean("replay_success"), "claimed_stop_rule_mean_generated": mean("claimed_stop_rule"),
+            "replayed_stop_rule_mean_generated": mean("replayed_stop_rule")}
+
+
+def summary_row(label: str, entry: dict, *, policy: float | None = None) -> str:
+    """One Markdown row (:data:`SUMMARY_HEADER`) of an :func:`open_loop` entry (or the recipe's ``analysis.open_loop``)."""
+    entry = _with_sample_summary(entry)
+    imp = entry["improvement"][f"stop_rule_{int(entry.get('horizon', 500))}"]
+    c, r = imp["claimed"], imp["replayed"]
+    n = entry["num_generated"]
+    fmt = lambda v: "—" if v is None else f"{v:.0f}"  # noqa: E731
+    cm = lambda v: "—" if v is None else f"{100 * v:.1f} cm"  # noqa: E731
+    hand = (f"{entry['start_hand_object_median']:.3f} vs {entry['data_start_hand_object_median']:.3f}"
+            if n and "start_hand_object_median" in entry else "—")
+    start = f"{_pct(entry.get('start_within_tolerance'))} ({cm(entry.get('start_distance_median'))})" if n else "—"
+    sample = (f"{fmt(entry.get('claimed_stop_rule_mean_generated'))} → {fmt(entry.get('replayed_stop_rule_mean_generated'))}"
+              if n else "—")
+    return (f"| {label} | {entry['env']} s{entry['seed']} | {n} | {start} | {hand} | {sample} | "
+            f"{_pct(entry.get('replay_success_rate')) if n else '—'} | "
+            f"{c['true_return_mean_before']:.0f} → {c['true_return_mean_after']:.0f} / "
+            f"**{r['true_return_mean_before']:.0f} → {r['true_return_mean_after']:.0f}** | "
+            f"{c['true_return_max_before']:.0f} → {c['true_return_max_after']:.0f} / "
+            f"**{r['true_return_max_before']:.0f} → {r['true_return_max_after']:.0f}** | "
+            f"{'—' if policy is None else f'{policy:.2f}'} |")
+
+
+def summarize(paths: list[Path]) -> str:
+    """The Markdown table of results files: this bench's (``runs``) or table1 cells with ``analysis.open_loop``."""
+    rows = [SUMMARY_HEADER, "|" + "---|" * SUMMARY_HEADER.count(" | ") + "---|"]
+    for path in paths:
+        data = json.loads(Path(path).read_text())
+        if "runs" in data:
+            for run, entry in data["runs"].items():
+                rows.append(summary_row(Path(path).stem, entry))
+        else:
+            metrics = data.get("metrics", data)
+            entry = metrics.get("analysis", {}).get("open_loop")
+            if entry is None:
+                raise SystemExit(f"{path}: neither this bench's results nor a run with analysis.open_loop")
+            entry = {"env": metrics["env"], "seed": metrics["seed"], **entry}
+            rows.append(summary_row(Path(path).parent.name, entry, policy=metrics["eval"].get("success_rate")))
+    return "\n".join(rows)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--run-dirs", nargs="+", type=Path, required=True)
+    parser.add_argument("--run-dirs", nargs="+", type=Path)
+    parser.add_argument("--summarize", nargs="+", type=Path, help="print the Markdown table of these results files")
     parser.add_argument("--horizon", type=int, default=500, help="the stop-rule return's horizon (Meta-World: 500)")
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "open_loop.json")
     parser.add_argument("--no-progress", action="store_true")
@@ -55,6 +123,11 @@ def main() -> None:
                         help="stop each replay after the sample's last action (default: the hand then holds still, "
                              "zero actions, until the stop rule or the time limit)")
     args = parser.parse_args()
+    if args.summarize:
+        print(summarize(args.summarize))
+        return
+    if not args.run_dirs:
+        parser.error("give --run-dirs (or --summarize)")
     require_finished_runs(parser, args.run_dirs)
     record = {**run_record(config={"run_dirs": [str(r) for r in args.run_dirs], "horizon": args.horizon,
                                    "hold": not args.no_hold}), "runs": {}}

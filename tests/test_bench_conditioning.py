@@ -67,3 +67,31 @@ def test_open_loop_replay_returns_fill_only_where_the_stop_rule_ended_the_replay
     rows, dist = nearest_start(torch.tensor([[0.0, 1.0], [5.0, 5.1]]),
                                      torch.tensor([[5.0, 5.0], [0.0, 1.0], [9.0, 9.0]]))
     assert rows.tolist() == [1, 0] and dist.tolist() == pytest.approx([0.0, 0.1])
+
+
+def test_open_loop_summary_reads_bench_files_and_recipe_cells(tmp_path):
+    """bench/open_loop.py --summarize: one row per run of its own files (old ones derive the sample columns
+    from their samples) and per table1 cell whose run had analysis.open_loop."""
+    bench = load_script(ROOT / "bench" / "open_loop.py", "bench_open_loop_summary")
+    summ = {"true_return_mean_before": 10.0, "true_return_max_before": 20.0,
+            "true_return_mean_after": 12.0, "true_return_max_after": 20.0}
+    improvement = {"stop_rule_500": {"claimed": summ, "replayed": {**summ, "true_return_mean_after": 9.0}}}
+    samples = [{"start_distance": d, "replay_success": s, "claimed_stop_rule": 30.0, "replayed_stop_rule": r}
+                for d, s, r in ((0.005, True, 40.0), (0.05, False, 10.0))]
+    old = tmp_path / "open_loop_old.json"
+    old.write_text(json.dumps({"runs": {"/r/x/seed4": {"env": "drawer-open-v3", "seed": 4, "num_generated": 2,
+                                                          "improvement": improvement, "samples": samples}}}))
+    ol = {"num_generated": 0, "horizon": 500, "improvement": improvement}
+    cell = tmp_path / "cells" / "ftb__drawer-open-v3__success__seed4.json"
+    cell.parent.mkdir()
+    cell.write_text(json.dumps({"metrics": {"env": "drawer-open-v3", "seed": 4, "eval": {"success_rate": 0.5},
+                                            "analysis": {"open_loop": ol}}}))
+    rows = bench.summarize([old, cell]).splitlines()
+    assert len(rows) == 4 and rows[1].count("|") == rows[0].count("|")
+    assert rows[2] == ("| open_loop_old | drawer-open-v3 s4 | 2 | 50% (0.5 cm) | — | 30 → 25 | 50% | "
+                       "10 → 12 / **10 → 9** | 20 → 20 / **20 → 20** | — |")
+    assert rows[3].startswith("| cells | drawer-open-v3 s4 | 0 | — |") and rows[3].endswith("| 0.50 |")
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"metrics": {"env": "x", "analysis": {}}}))
+    with pytest.raises(SystemExit, match="analysis.open_loop"):
+        bench.summarize([bad])
