@@ -32,7 +32,7 @@ sys.path.insert(0, str(ROOT / "bench"))
 from expert_headroom import load_metaworld_run  # noqa: E402
 from flow_generated import require_finished_runs  # noqa: E402
 
-from torchrl_ftb.analysis import nearest_start, open_loop_improvement, replay_returns  # noqa: E402,F401 (tests)
+from torchrl_ftb.analysis import open_loop_improvement, summarize_samples  # noqa: E402
 from torchrl_ftb.provenance import run_record, write_json  # noqa: E402
 
 
@@ -61,15 +61,9 @@ def _pct(v) -> str:
 
 def _with_sample_summary(entry: dict) -> dict:
     """Files written before the summary fields existed (session 29) derive them from their samples."""
-    samples = entry.get("samples")
-    if not samples or "start_within_tolerance" in entry:
+    if "start_within_tolerance" in entry:
         return entry
-    mean = lambda k: sum(float(x[k]) for x in samples) / len(samples)  # noqa: E731
-    dist = sorted(x["start_distance"] for x in samples)
-    return {**entry, "start_within_tolerance": sum(d <= 0.01 for d in dist) / len(dist),
-            "start_distance_median": dist[(len(dist) - 1) // 2],  # torch.median's lower median
-            "replay_success_rate": mean("replay_success"), "claimed_stop_rule_mean_generated": mean("claimed_stop_rule"),
-            "replayed_stop_rule_mean_generated": mean("replayed_stop_rule")}
+    return {**entry, **summarize_samples(entry.get("samples") or [])}
 
 
 def summary_row(label: str, entry: dict, *, policy: float | None = None) -> str:

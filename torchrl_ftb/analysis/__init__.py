@@ -7,6 +7,7 @@ from torchrl_ftb.analysis.replay import (
     nearest_start,
     open_loop_improvement,
     replay_returns,
+    summarize_samples,
 )
 
 __all__ = [
@@ -22,6 +23,7 @@ __all__ = [
     "plot_scatter",
     "replay_returns",
     "save_figure",
+    "summarize_samples",
     "toy_oracle_step",
     "trajectory_distances",
 ]

@@ -200,15 +200,42 @@ def open_loop_improvement(
     improvement = {name: {"claimed": return_summary(claimed0[:, c], claimed1[:, c]),
                           "replayed": return_summary(real0[:, j], real1[:, j])}
                    for j, c, name in ((0, 0, "plain"), (1, 2, f"stop_rule_{horizon}"))}
-    n = len(samples)
-    return {"num_generated": n, "hold_after_last_action": hold, "horizon": horizon,
-            "start_tolerance": START_TOLERANCE,
-            "start_within_tolerance": float((start_dist <= START_TOLERANCE).double().mean()) if n else None,
-            "start_distance_median": float(start_dist.median()) if n else None,
-            "start_distance_max": float(start_dist.max()) if n else None,
-            "start_hand_object_median": float(reach.median()) if n else None,
-            "data_start_hand_object_median": float(data_reach.median()) if n else None,
-            "replay_success_rate": float(np.mean(success)) if n else None,
-            "claimed_stop_rule_mean_generated": float(claimed1[generated, 2].mean()) if n else None,
-            "replayed_stop_rule_mean_generated": float(replayed[:, 1].mean()) if n else None,
+    return {"num_generated": len(samples), "hold_after_last_action": hold, "horizon": horizon,
+            "start_tolerance": START_TOLERANCE, **summarize_samples(samples),
             "improvement": improvement, "samples": samples}
+
+
+#: the summary fields :func:`summarize_samples` derives (None for a final set without generated trajectories)
+SAMPLE_SUMMARY_KEYS = ("start_within_tolerance", "start_distance_median", "start_distance_max",
+                       "start_hand_object_median", "data_start_hand_object_median", "replay_success_rate",
+                       "claimed_stop_rule_mean_generated", "replayed_stop_rule_mean_generated")
+
+
+def summarize_samples(samples: list[dict]) -> dict:
+    """The summary fields of :func:`open_loop_improvement`'s per-sample dicts: the share starting within
+    ``START_TOLERANCE`` of a dataset start, median / max start distance, median hand-object distance at the
+    start (sample and data; only where the samples carry it, i.e. not in files written before it existed),
+    the share of replays that succeed, and the mean claimed / replayed stop-rule return. Medians are the
+    lower median (``torch.median``).
+
+    Example:
+        >>> s = [{"start_distance": 0.0, "replay_success": True, "claimed_stop_rule": 3.0, "replayed_stop_rule": 1.0}]
+        >>> summarize_samples(s)["replay_success_rate"], summarize_samples([])["replay_success_rate"]
+        (1.0, None)
+    """
+    if not samples:
+        return dict.fromkeys(SAMPLE_SUMMARY_KEYS)
+
+    def col(key: str) -> torch.Tensor:
+        return torch.tensor([float(x[key]) for x in samples], dtype=torch.float64)
+
+    dist = col("start_distance")
+    out = {"start_within_tolerance": float((dist <= START_TOLERANCE).double().mean()),
+           "start_distance_median": float(dist.median()), "start_distance_max": float(dist.max()),
+           "replay_success_rate": float(col("replay_success").mean()),
+           "claimed_stop_rule_mean_generated": float(col("claimed_stop_rule").mean()),
+           "replayed_stop_rule_mean_generated": float(col("replayed_stop_rule").mean())}
+    if "start_hand_object" in samples[0]:
+        out.update(start_hand_object_median=float(col("start_hand_object").median()),
+                   data_start_hand_object_median=float(col("data_start_hand_object").median()))
+    return out
