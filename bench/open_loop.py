@@ -36,15 +36,21 @@ from torchrl_ftb.analysis import open_loop_improvement, summarize_samples  # noq
 from torchrl_ftb.provenance import run_record, write_json  # noqa: E402
 
 
-def open_loop(run: Path, *, horizon: int, progress: bool, hold: bool = True) -> dict:
-    """:func:`torchrl_ftb.analysis.open_loop_improvement` of a finished run directory's final set."""
+def load_flow(run: Path) -> tuple:
+    """``(cfg, data, meta, final, original, generated, original_rows)`` of a finished run directory: its
+    dataset and the flow's final set and original top-k (``checkpoints/flow.pt``)."""
     cfg, data, meta = load_metaworld_run(run)
     ckpt = torch.load(run / "checkpoints" / "flow.pt", weights_only=True)
     final = TensorDict(ckpt["trajectories"]["data"], batch_size=ckpt["trajectories"]["batch_size"])
     original = TensorDict(ckpt["original"]["data"], batch_size=ckpt["original"]["batch_size"])
-    out = open_loop_improvement(final, original, ckpt["source_step"] > 0, data, meta, task=str(cfg.env.name),
-                                horizon=horizon, original_rows=ckpt.get("original_indices"), hold=hold,
-                                progress=progress)
+    return cfg, data, meta, final, original, ckpt["source_step"] > 0, ckpt.get("original_indices")
+
+
+def open_loop(run: Path, *, horizon: int, progress: bool, hold: bool = True) -> dict:
+    """:func:`torchrl_ftb.analysis.open_loop_improvement` of a finished run directory's final set."""
+    cfg, data, meta, final, original, generated, rows = load_flow(run)
+    out = open_loop_improvement(final, original, generated, data, meta, task=str(cfg.env.name),
+                                horizon=horizon, original_rows=rows, hold=hold, progress=progress)
     return {"env": str(cfg.env.name), "seed": int(cfg.seed), "top_k": int(original.batch_size[0]),
             "flow_filter": str(cfg.flow.get("filter", "score_model")),
             "diffuser_strength": float(cfg.diffuser.get("strength", 1.0)), **out}

@@ -1,7 +1,8 @@
-"""Analysis stage (paper §4.3): improvement, validity (dynamics error), novelty, open-loop replays, plots."""
+"""Analysis stage (paper §4.3): improvement, validity (dynamics error), novelty, open-loop and tracked replays, plots."""
 from torchrl_ftb.analysis.metrics import dynamics_error, improvement, novelty, toy_oracle_step, trajectory_distances
 from torchrl_ftb.analysis.plots import plot_flow_curves, plot_histograms, plot_scatter, save_figure
 from torchrl_ftb.analysis.replay import (
+    episode_jobs,
     match_rows,
     metaworld_state_returns,
     nearest_start,
@@ -9,9 +10,13 @@ from torchrl_ftb.analysis.replay import (
     replay_returns,
     summarize_samples,
 )
+from torchrl_ftb.analysis.tracking import PathTracker, fit_path_tracker, track_paths, tracked_improvement
 
 __all__ = [
+    "PathTracker",
     "dynamics_error",
+    "episode_jobs",
+    "fit_path_tracker",
     "improvement",
     "match_rows",
     "metaworld_state_returns",
@@ -25,5 +30,7 @@ __all__ = [
     "save_figure",
     "summarize_samples",
     "toy_oracle_step",
+    "track_paths",
+    "tracked_improvement",
     "trajectory_distances",
 ]

@@ -81,6 +81,19 @@ def nearest_start(first: torch.Tensor, data_first: torch.Tensor) -> tuple[torch.
     return best.indices, best.values
 
 
+def episode_jobs(meta: dict, rows: torch.Tensor) -> list[tuple[int, int]]:
+    """``(group index, episode)`` of dataset rows of a generated Meta-World dataset (its ``meta``): the jobs
+    that re-create those episodes' goals and starts (:func:`~torchrl_ftb.datasets.metaworld.replay_metaworld_actions`).
+
+    Example:
+        >>> meta = {"groups": ["expert", "random"], "per_trajectory": {"group": [1, 0], "episode": [7, 3]}}
+        >>> episode_jobs(meta, torch.tensor([1]))
+        [(0, 3)]
+    """
+    per, groups = meta["per_trajectory"], list(meta["groups"])
+    return [(GROUPS.index(groups[int(per["group"][r])]), int(per["episode"][r])) for r in torch.as_tensor(rows).tolist()]
+
+
 def replay_returns(episodes: list[dict], *, horizon: int) -> torch.Tensor:
     """``float64 [N, 2]``: plain sum and stop-rule return of open-loop replays (filled to ``horizon`` only
     where the stop rule, ``SUCCESS_STREAK`` consecutive successes, ended the replay).
@@ -173,8 +186,7 @@ def open_loop_improvement(
         real1[~generated] = recorded[match_rows(final[~generated]["observation"].float(), data_obs)]
     gen = final[generated]
     start_row, start_dist = nearest_start(gen["observation"][:, 0].float(), data_obs[:, 0])
-    per, groups = meta["per_trajectory"], list(meta["groups"])
-    jobs = [(GROUPS.index(groups[int(per["group"][r])]), int(per["episode"][r])) for r in start_row.tolist()]
+    jobs = episode_jobs(meta, start_row)
     lengths = gen["mask"].sum(-1).tolist()
     limit = int(meta["max_steps"])
     actions = [gen["action"][i, :n].numpy() for i, n in enumerate(lengths)]

@@ -81,13 +81,16 @@ def _episode_rng(seed: int, group: int, episode: int) -> np.random.Generator:
 
 
 def _run_episode(env, task: str, group: int, rng: np.random.Generator, *, noise: float,
-                 max_steps: int, policies: dict, expert: bool = False, actions: np.ndarray | None = None) -> dict:
+                 max_steps: int, policies: dict, expert: bool = False, actions: np.ndarray | None = None,
+                 controller=None) -> dict:
     """One episode of ``group`` (see module docstring); returns numpy arrays per step.
 
     ``expert=True`` replays the episode's goal and start with the task's own scripted policy
     instead of the group's (``bench/expert_headroom.py``: what the expert reaches from there).
     ``actions [L, 4]``: the episode's goal and start, then these actions open loop (clipped as the
-    data's), stopping after ``L`` steps or at the stop rule, whichever comes first."""
+    data's), stopping after ``L`` steps or at the stop rule, whichever comes first. ``controller``
+    (``obs -> action``, called once per step in order): the episode's goal and start, then this
+    closed-loop controller instead of the group's policy."""
     name = GROUPS[group]
     tasks = metaworld_tasks()
     policy_task = -1
@@ -104,6 +107,8 @@ def _run_episode(env, task: str, group: int, rng: np.random.Generator, *, noise:
     if policy_task >= 0 and tasks[policy_task] not in policies:
         policies[tasks[policy_task]] = scripted_policy(tasks[policy_task])
     policy = policies[tasks[policy_task]] if policy_task >= 0 else None
+    if controller is not None:
+        policy = controller
 
     obs, _ = u.reset()
     steps = {k: [] for k in ("observation", "action", "next_observation", "reward", "success", "state")}
@@ -133,7 +138,7 @@ def _run_episode(env, task: str, group: int, rng: np.random.Generator, *, noise:
 
 def generate_metaworld_episodes(task: str, jobs: list[tuple[int, int]], *, seed: int, noise: float,
                                 max_steps: int, on_episode=None, expert: bool = False,
-                                actions: "list[np.ndarray] | None" = None) -> list[dict]:
+                                actions: "list[np.ndarray] | None" = None, controllers: list | None = None) -> list[dict]:
     """Generate the episodes ``jobs = [(group, episode), ...]`` (a worker's share).
 
     Deterministic per ``(seed, group, episode)``; used in-process or in worker processes.
@@ -141,8 +146,11 @@ def generate_metaworld_episodes(task: str, jobs: list[tuple[int, int]], *, seed:
     every episode's goal and start as generated, acted on by the task's scripted policy
     (with ``noise``) whatever its group. ``actions`` (one ``[L_i, 4]`` array per job): an
     open-loop replay, each episode's goal and start acted on by those actions instead
-    (:func:`replay_metaworld_actions`).
+    (:func:`replay_metaworld_actions`). ``controllers`` (one ``obs -> action`` callable per job): each
+    episode's goal and start, then that controller in closed loop (:func:`torchrl_ftb.analysis.track_paths`).
     """
+    if controllers is not None and len(controllers) != len(jobs):
+        raise ValueError(f"generate_metaworld_episodes: {len(controllers)} controllers for {len(jobs)} jobs")
     if actions is not None and len(actions) != len(jobs):
         raise ValueError(f"generate_metaworld_episodes: {len(actions)} action sequences for {len(jobs)} jobs")
     env = make_metaworld_gym_env(task, seed=seed, max_episode_steps=max_steps)
@@ -151,7 +159,8 @@ def generate_metaworld_episodes(task: str, jobs: list[tuple[int, int]], *, seed:
     for i, (group, episode) in enumerate(jobs):
         ep = _run_episode(env, task, group, _episode_rng(seed, group, episode), noise=noise,
                           max_steps=max_steps, policies=policies, expert=expert,
-                          actions=None if actions is None else actions[i])
+                          actions=None if actions is None else actions[i],
+                          controller=None if controllers is None else controllers[i])
         ep["episode"] = episode
         out.append(ep)
         if on_episode is not None:

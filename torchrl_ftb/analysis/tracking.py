@@ -1,0 +1,258 @@
+"""Tracked replays: what a Meta-World trajectory's *state path* is worth in the simulator, in closed loop.
+
+An open-loop replay (:mod:`torchrl_ftb.analysis.replay`) executes a generated trajectory's own actions. Over
+hundreds of steps any action error compounds (the hand lags its mocap target), so a sample's states may be
+a reachable path that its actions do not reach. This module reads the states as a plan, the way
+Decision Diffuser executes its samples: a goal-conditioned inverse-dynamics controller, fitted on the
+dataset's transitions (offline, no simulator), starts from the real start and at every step heads for the
+hand position and gripper opening of the path's next state, from the state the simulator actually reached.
+The simulator's return of that episode is the path's *tracked* return.
+
+The tracker is imperfect, so a tracked return is compared only with another tracked return: the original
+top-k is tracked too, and :func:`tracked_improvement` reports top-k → final set with both sides read the
+same way, beside how closely the tracker reproduces the recorded top-k (its fidelity). The simulator is
+used only for this reading, never by the flow. Only generated Meta-World datasets carry the goals and
+starts this needs.
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+from tensordict import TensorDictBase
+from torch import nn
+from tqdm.auto import tqdm
+
+from torchrl_ftb.analysis.replay import episode_jobs, match_rows, metaworld_state_returns, nearest_start, replay_returns
+from torchrl_ftb.data.labels import true_return
+from torchrl_ftb.datasets.metaworld import generate_metaworld_episodes
+from torchrl_ftb.flow.flow import clip_actions, return_summary
+
+#: the observation dimensions a tracker heads for: the hand's position and the gripper's opening
+TRACKED_DIMS = (0, 1, 2, 3)
+
+
+class PathTracker(nn.Module):
+    """Goal-conditioned inverse dynamics: ``(o_t, p_{t+1}[dims] - o_t[dims]) -> a_t``, with ``p`` the path.
+
+    An MLP on z-scored inputs (statistics of the transitions it is fitted on, :func:`fit_path_tracker`);
+    actions are clipped to ``[-1, 1]``. :meth:`controller` gives the closed-loop form for one path.
+
+    Example:
+        >>> tracker = PathTracker(39, 4, hidden=8)
+        >>> tracker(torch.zeros(2, 39), torch.zeros(2, 39)).shape
+        torch.Size([2, 4])
+    """
+
+    def __init__(self, obs_dim: int, action_dim: int, *, hidden: int = 512,
+                 dims: tuple[int, ...] = TRACKED_DIMS) -> None:
+        super().__init__()
+        self.dims = tuple(int(d) for d in dims)
+        in_dim = obs_dim + len(self.dims)
+        self.net = nn.Sequential(nn.Linear(in_dim, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(),
+                                 nn.Linear(hidden, action_dim))
+        self.register_buffer("loc", torch.zeros(in_dim))
+        self.register_buffer("scale", torch.ones(in_dim))
+
+    def features(self, observation: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        dims = list(self.dims)
+        return torch.cat([observation, target[..., dims] - observation[..., dims]], -1)
+
+    def forward(self, observation: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        x = (self.features(observation, target) - self.loc) / self.scale
+        return self.net(x).clamp(-1.0, 1.0)
+
+    def controller(self, path: np.ndarray, length: int):
+        """``obs -> action`` heading, at its ``t``-th call, for ``path[min(t + 1, length - 1)]`` (then it holds
+        the path's last state). The MLP runs in numpy: one small call per simulator step."""
+        if length < 1:
+            raise ValueError(f"PathTracker.controller: a path needs at least one step, got length {length}")
+        layers = [m for m in self.net if isinstance(m, nn.Linear)]
+        weights = [(m.weight.detach().double().cpu().numpy().T, m.bias.detach().double().cpu().numpy())
+                   for m in layers]
+        loc, scale = self.loc.double().cpu().numpy(), self.scale.double().cpu().numpy()
+        dims, path, step = list(self.dims), np.asarray(path, dtype=np.float64), [0]
+
+        def act(obs: np.ndarray) -> np.ndarray:
+            target = path[min(step[0] + 1, length - 1)]
+            step[0] += 1
+            h = (np.concatenate([obs, target[dims] - obs[dims]]) - loc) / scale
+            for i, (w, b) in enumerate(weights):
+                h = h @ w + b
+                if i < len(weights) - 1:
+                    h = np.maximum(h, 0.0)
+            return np.clip(h, -1.0, 1.0)
+
+        return act
+
+
+def fit_path_tracker(data: TensorDictBase, *, steps: int = 4000, batch_size: int = 1024, lr: float = 1e-3,
+                     hidden: int = 512, dims: tuple[int, ...] = TRACKED_DIMS, seed: int = 0,
+                     progress: bool = False) -> PathTracker:
+    """Fit a :class:`PathTracker` by regression on a dataset's transitions (pairs of consecutive valid steps).
+
+    A hand-written loop: an inverse-dynamics regression used only by this analysis, which no torchrl loss
+    covers (``BCLoss`` regresses an action on one observation). Seeded: the same data and seed give the
+    same tracker.
+
+    Args:
+        data: ``[N, H]`` real trajectories (``observation``, ``action``, ``mask``).
+        steps, batch_size, lr, hidden: Adam steps on the mean squared action error, its batch, step size
+            and the MLP width.
+        dims: the observation dimensions the tracker heads for (Meta-World: hand and gripper).
+        seed: initialisation and batches.
+        progress: a progress bar.
+
+    Example:
+        >>> from tensordict import TensorDict
+        >>> td = TensorDict({"observation": torch.randn(2, 5, 39), "action": torch.rand(2, 5, 4),
+        ...                  "mask": torch.ones(2, 5, dtype=torch.bool)}, [2, 5])
+        >>> fit_path_tracker(td, steps=2, hidden=8).dims
+        (0, 1, 2, 3)
+    """
+    obs, act, mask = data.get("observation").float().cpu(), data.get("action").float().cpu(), data.get("mask").cpu()
+    pair = mask[:, :-1] & mask[:, 1:]
+    if not bool(pair.any()):
+        raise ValueError("fit_path_tracker: the data have no pair of consecutive valid steps to fit on")
+    if max(dims) >= obs.shape[-1]:
+        raise ValueError(f"fit_path_tracker: dims {dims} exceed the observation's {obs.shape[-1]} dimensions")
+    with torch.random.fork_rng():
+        torch.manual_seed(seed)
+        tracker = PathTracker(obs.shape[-1], act.shape[-1], hidden=hidden, dims=dims)
+        x = tracker.features(obs[:, :-1], obs[:, 1:])[pair]
+        y = act[:, :-1][pair].clamp(-1.0, 1.0)
+        tracker.loc.copy_(x.mean(0))
+        tracker.scale.copy_(x.std(0).clamp_min(1e-6))
+        x = (x - tracker.loc) / tracker.scale
+        opt = torch.optim.Adam(tracker.net.parameters(), lr=lr)
+        for _ in tqdm(range(steps), desc="path tracker", disable=not progress):
+            idx = torch.randint(x.shape[0], (min(batch_size, x.shape[0]),))
+            loss = (tracker.net(x[idx]) - y[idx]).pow(2).mean()
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+    return tracker.eval()
+
+
+def track_paths(task: str, jobs: list[tuple[int, int]], paths: torch.Tensor, lengths: list[int],
+                tracker: PathTracker, *, seed: int, max_steps: int, on_episode=None) -> list[dict]:
+    """Closed-loop tracked replays: each dataset episode's goal and start (``jobs``, :func:`episode_jobs`), then
+    ``tracker`` heading for its path (``paths [K, H, D]`` observations, ``lengths`` valid steps each) until the
+    data's stop rule or ``max_steps``. Returns per-step episodes, as
+    :func:`~torchrl_ftb.datasets.metaworld.replay_metaworld_actions`.
+
+    Example:
+        >>> eps = track_paths("button-press-v3", [(0, 0)], data["observation"][:1], [100], tracker,
+        ...                   seed=0, max_steps=500)  # doctest: +SKIP
+    """
+    if len(jobs) != paths.shape[0] or len(lengths) != paths.shape[0]:
+        raise ValueError(f"track_paths: {len(jobs)} jobs, {paths.shape[0]} paths and {len(lengths)} lengths; "
+                         f"expected one of each per trajectory")
+    paths = paths.double().cpu().numpy()
+    controllers = [tracker.controller(p, int(n)) for p, n in zip(paths, lengths)]
+    return generate_metaworld_episodes(task, jobs, seed=seed, noise=0.0, max_steps=max_steps,
+                                       on_episode=on_episode, controllers=controllers)
+
+
+def _hand_deviation(episodes: list[dict], paths: torch.Tensor, lengths: list[int]) -> list[float]:
+    """Mean distance (m) between the tracked hand and the path's, over the steps both have."""
+    out = []
+    for ep, path, n in zip(episodes, paths, lengths):
+        k = min(int(n), len(ep["observation"]))
+        real = torch.as_tensor(ep["observation"][:k, 0:3], dtype=torch.float64)
+        out.append(float((real - path[:k, 0:3].double()).norm(dim=-1).mean()))
+    return out
+
+
+def tracked_improvement(
+    final: TensorDictBase,
+    original: TensorDictBase,
+    generated: torch.Tensor,
+    data: TensorDictBase,
+    meta: dict,
+    *,
+    task: str,
+    horizon: int,
+    tracker: PathTracker,
+    original_rows: torch.Tensor | None = None,
+    progress: bool = False,
+) -> dict:
+    """The flow's improvement (original top-k -> final set) with every trajectory's states tracked in closed loop.
+
+    Every original top-k trajectory is tracked from its own start, every generated one from the start of its
+    nearest dataset episode (as :func:`~torchrl_ftb.analysis.open_loop_improvement`); the final set's
+    originals reuse their top-k episodes. Both sides go through the same tracker, so the ratio is fair
+    though the tracker is imperfect; ``fidelity`` says how imperfect on the top-k (tracked vs recorded).
+
+    Args:
+        final, original, generated, data, meta, task, horizon, original_rows: as
+            :func:`~torchrl_ftb.analysis.open_loop_improvement`.
+        tracker: from :func:`fit_path_tracker` on ``data``.
+        progress: a progress bar over the episodes.
+
+    Returns:
+        ``tracked`` (``return_summary`` of the stop-rule return, top-k -> final, both tracked), ``claimed``
+        (the same read off the states), ``fidelity`` (the top-k's recorded vs tracked mean, max and success
+        rate, and the tracked hand's median deviation from the recorded path), ``generated`` (count, median
+        hand deviation, success rate, mean claimed and tracked return of the generated samples) and
+        ``samples`` (per generated trajectory).
+
+    Example:
+        >>> tracker = fit_path_tracker(data)  # doctest: +SKIP
+        >>> out = tracked_improvement(flow.trajectories, flow.original, flow.source_step > 0, data, meta,
+        ...                           task="drawer-open-v3", horizon=500, tracker=tracker)  # doctest: +SKIP
+        >>> out["tracked"]["true_return_mean_after"]  # doctest: +SKIP
+    """
+    if meta.get("domain") != "metaworld" or "per_trajectory" not in meta:
+        raise ValueError(f"tracked_improvement: {task}'s dataset is not a generated Meta-World one "
+                         f"(its goals and starts are needed to track from them)")
+    generated = torch.as_tensor(generated, dtype=torch.bool).cpu()
+    if generated.shape != final.batch_size[:1]:
+        raise ValueError(f"tracked_improvement: generated has shape {list(generated.shape)}, "
+                         f"expected [{final.batch_size[0]}] (one flag per final-set trajectory)")
+    final = final.select("observation", "action", "mask").to("cpu")
+    original = original.select("observation", "action", "mask").to("cpu")
+    data_obs = data["observation"]
+    rows = match_rows(original["observation"].float(), data_obs) if original_rows is None else original_rows.cpu()
+    gen = final[generated]
+    start_row, _ = nearest_start(gen["observation"][:, 0].float(), data_obs[:, 0])
+    paths = torch.cat([original["observation"], gen["observation"]], 0)
+    lengths = [int(n) for n in torch.cat([original["mask"], gen["mask"]], 0).sum(-1).tolist()]
+    jobs = episode_jobs(meta, torch.cat([rows, start_row]))
+    bar = tqdm(total=len(jobs), desc=f"{task} tracked replays", disable=not progress)
+    episodes = track_paths(task, jobs, paths, lengths, tracker, seed=int(meta["seed"]), max_steps=int(meta["max_steps"]),
+                           on_episode=lambda: bar.update(1))
+    bar.close()
+    tracked = replay_returns(episodes, horizon=horizon)[:, 1]
+    success = torch.tensor([bool(ep["success"].any()) for ep in episodes])
+    deviation = torch.tensor(_hand_deviation(episodes, paths, lengths), dtype=torch.float64)
+    k = original.batch_size[0]
+    by_row = dict(zip(rows.tolist(), tracked[:k].tolist()))
+    final_rows = match_rows(final[~generated]["observation"].float(), data_obs) if bool((~generated).any()) else []
+    missing = [int(r) for r in torch.as_tensor(final_rows).tolist() if int(r) not in by_row]
+    if missing:
+        raise ValueError(f"tracked_improvement: final-set originals {missing[:5]} are not in the original top-k")
+    after = torch.zeros(final.batch_size[0], dtype=torch.float64)
+    after[~generated] = torch.tensor([by_row[int(r)] for r in torch.as_tensor(final_rows).tolist()], dtype=torch.float64)
+    after[generated] = tracked[k:]
+    claimed0 = metaworld_state_returns(task, clip_actions(original.clone(), 1.0), horizon=horizon)[:, 2]
+    claimed1 = metaworld_state_returns(task, clip_actions(final.clone(), 1.0), horizon=horizon)[:, 2]
+    recorded = true_return(data, horizon=horizon).double()[rows]
+    data_success = data["next", "success"].any(-2).reshape(-1)[rows] if ("next", "success") in data.keys(True) else None
+    fidelity = {"recorded_mean": float(recorded.mean()), "tracked_mean": float(tracked[:k].mean()),
+                "recorded_max": float(recorded.max()), "tracked_max": float(tracked[:k].max()),
+                "tracked_success_rate": float(success[:k].double().mean()),
+                "recorded_success_rate": None if data_success is None else float(data_success.double().mean()),
+                "hand_deviation_median": float(deviation[:k].median())}
+    samples = [{"start_row": int(r), "length": int(n), "claimed_stop_rule": float(c), "tracked_stop_rule": float(t),
+                "tracked_success": bool(s), "hand_deviation": float(d)}
+               for r, n, c, t, s, d in zip(start_row.tolist(), lengths[k:], claimed1[generated], tracked[k:],
+                                           success[k:], deviation[k:])]
+    n_gen = len(samples)
+    gen_summary = {"num_generated": n_gen,
+                   "hand_deviation_median": float(deviation[k:].median()) if n_gen else None,
+                   "tracked_success_rate": float(success[k:].double().mean()) if n_gen else None,
+                   "claimed_stop_rule_mean": float(claimed1[generated].mean()) if n_gen else None,
+                   "tracked_stop_rule_mean": float(tracked[k:].mean()) if n_gen else None}
+    return {"horizon": horizon, "tracked": return_summary(tracked[:k], after),
+            "claimed": return_summary(claimed0, claimed1), "fidelity": fidelity, "generated": gen_summary,
+            "samples": samples}
