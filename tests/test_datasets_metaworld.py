@@ -294,3 +294,45 @@ def test_open_loop_bench_replays_recorded_trajectories_to_the_returns_read_off_t
     with pytest.raises(ValueError, match=r"generated has shape \[3\], expected \[4\]"):
         open_loop_improvement(final, original, torch.ones(3, dtype=torch.bool), td, meta,
                               task="button-press-v3", horizon=150)
+
+
+@pytest.mark.integration
+def test_tracked_replay_reads_both_sides_through_the_same_tracker(tiny_dataset, tmp_path):
+    """bench/tracked_replay.py (torchrl_ftb.analysis.tracked_improvement) on a run directory whose
+    "generated" trajectories are recorded ones: a generated path tracked from its own start is the same
+    episode as its top-k twin, so top-k -> final is unchanged, and the fidelity compares with the recording."""
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    from torchrl_ftb.analysis import fit_path_tracker, tracked_improvement
+    from torchrl_ftb.data.labels import true_return
+
+    td, meta, cache = tiny_dataset
+    root = Path(__file__).resolve().parents[1]
+    with initialize_config_dir(config_dir=str(root / "recipes" / "config"), version_base="1.3"):
+        cfg = compose(config_name="ftb_offline", overrides=[
+            "env.name=button-press-v3", "env.max_episode_steps=150", "dataset.episodes_per_group=1",
+            "dataset.noise=0.0", f"dataset.cache_dir={cache}", f"run_dir={tmp_path}"])
+    (tmp_path / "checkpoints").mkdir()
+    OmegaConf.save(cfg, tmp_path / "config.yaml", resolve=True)
+    keep = td.select("observation", "action", "mask")
+    final, original = keep[[0, 2, 1, 3]], keep[[1, 3, 0, 2]]
+    torch.save({"trajectories": {"data": final.to_dict(), "batch_size": list(final.batch_size)},
+                "original": {"data": original.to_dict(), "batch_size": list(original.batch_size)},
+                "source_step": torch.tensor([1, 1, 0, 0])}, tmp_path / "checkpoints" / "flow.pt")
+    bench = load_script(root / "bench" / "tracked_replay.py", "bench_tracked_replay_mw")
+    out = bench.tracked(tmp_path, horizon=150, tracker_steps=50, seed=0, progress=False)
+    t = out["tracked"]
+    assert t["true_return_mean_after"] == pytest.approx(t["true_return_mean_before"], rel=1e-9)
+    assert t["true_return_max_after"] == t["true_return_max_before"]
+    assert [s["start_row"] for s in out["samples"]] == [0, 2] and out["generated"]["num_generated"] == 2
+    assert out["fidelity"]["recorded_mean"] == pytest.approx(float(true_return(td, horizon=150)[[1, 3, 0, 2]].mean()))
+    assert out["fidelity"]["recorded_success_rate"] == float(td["next", "success"].any(-2).double().mean()) and out["fidelity"]["hand_deviation_median"] >= 0
+    assert out["inpaint_start"] is False and out["top_k"] == 4
+    tracker = fit_path_tracker(td, steps=5, hidden=8)
+    with pytest.raises(ValueError, match="not a generated Meta-World one"):
+        tracked_improvement(final, original, torch.tensor([1, 1, 0, 0]) > 0, td, {"domain": "toy"},
+                            task="button-press-v3", horizon=150, tracker=tracker)
+    with pytest.raises(ValueError, match="final-set originals"):  # an original the top-k does not hold
+        tracked_improvement(keep[[0, 2]], keep[[1, 3]], torch.tensor([True, False]), td, meta,
+                            task="button-press-v3", horizon=150, tracker=tracker, original_rows=torch.tensor([1, 3]))

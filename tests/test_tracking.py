@@ -1,0 +1,62 @@
+"""torchrl_ftb.analysis.tracking: the path tracker (goal-conditioned inverse dynamics) without the simulator."""
+import numpy as np
+import pytest
+import torch
+from tensordict import TensorDict
+
+from torchrl_ftb.analysis import PathTracker, fit_path_tracker, track_paths
+
+
+def _mocap_like(n: int = 64, h: int = 20, seed: int = 0) -> TensorDict:
+    """Trajectories whose hand moves by a[:3] / 100 per step and whose gripper opening is a[3]."""
+    g = torch.Generator().manual_seed(seed)
+    act = torch.rand(n, h, 4, generator=g) * 2 - 1
+    obs = torch.zeros(n, h, 39)
+    obs[:, 0, 4:7] = torch.rand(n, 3, generator=g)  # an object that stays put
+    for t in range(1, h):
+        obs[:, t] = obs[:, t - 1]
+        obs[:, t, 0:3] = obs[:, t - 1, 0:3] + act[:, t - 1, 0:3] / 100
+        obs[:, t, 3] = act[:, t - 1, 3]
+    return TensorDict({"observation": obs, "action": act, "mask": torch.ones(n, h, dtype=torch.bool)}, [n, h])
+
+
+def test_fitted_tracker_heads_for_the_next_state_of_its_path():
+    """Behaviour: fitted on mocap-like transitions, the tracker's action points the hand at the target, and
+    its closed-loop form follows a path step by step (then holds its last state)."""
+    data = _mocap_like()
+    tracker = fit_path_tracker(data, steps=600, hidden=64, seed=0)
+    obs = torch.zeros(3, 39)
+    target = obs.clone()
+    target[0, 0], target[1, 1], target[2, 2] = 0.005, -0.005, 0.005  # half a step's reach along x, -y, z
+    with torch.no_grad():
+        act = tracker(obs, target)
+    assert act[0, 0] > 0.2 and act[1, 1] < -0.2 and act[2, 2] > 0.2
+    assert float(act.abs().max()) <= 1.0
+    # closed loop on a simple "simulator" (the same mocap rule): the hand reaches the path's end
+    path = torch.zeros(6, 39)
+    path[:, 0] = torch.linspace(0, 0.025, 6)
+    control, o = tracker.controller(path.numpy(), 6), np.zeros(39)
+    for _ in range(8):
+        a = control(o)
+        o = o.copy()
+        o[0:3] += a[:3] / 100
+        o[3] = a[3]
+    assert o[0] == pytest.approx(0.025, abs=0.003) and abs(o[1]) < 0.003
+
+
+def test_tracker_fit_is_seeded_and_rejects_bad_input():
+    data = _mocap_like(n=8, h=5)
+    a, b = (fit_path_tracker(data, steps=20, hidden=16, seed=3) for _ in range(2))
+    x = torch.randn(4, 39)
+    assert torch.equal(a(x, x), b(x, x))
+    assert not torch.equal(a(x, x), fit_path_tracker(data, steps=20, hidden=16, seed=4)(x, x))
+    lone = data.clone()
+    lone["mask"][:, 1:] = False
+    with pytest.raises(ValueError, match="no pair of consecutive valid steps"):
+        fit_path_tracker(lone, steps=1)
+    with pytest.raises(ValueError, match=r"dims \(0, 40\) exceed the observation's 39"):
+        fit_path_tracker(data, steps=1, dims=(0, 40))
+    with pytest.raises(ValueError, match="at least one step"):
+        PathTracker(39, 4, hidden=4).controller(np.zeros((3, 39)), 0)
+    with pytest.raises(ValueError, match="2 jobs, 1 paths and 1 lengths"):
+        track_paths("button-press-v3", [(0, 0), (0, 1)], torch.zeros(1, 3, 39), [3], a, seed=0, max_steps=3)
