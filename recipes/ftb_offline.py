@@ -43,7 +43,15 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDict, TensorDictBase
 
-from torchrl_ftb.analysis import novelty, open_loop_improvement, plot_flow_curves, plot_histograms, plot_scatter
+from torchrl_ftb.analysis import (
+    fit_path_tracker,
+    novelty,
+    open_loop_improvement,
+    plot_flow_curves,
+    plot_histograms,
+    plot_scatter,
+    tracked_improvement,
+)
 from torchrl_ftb.data import atomic_torch_save, atomic_write_text, read_checkpoint, trajectories_to_flat
 from torchrl_ftb.data.labels import SuccessTeacher, load_labels, make_teacher, save_labels
 from torchrl_ftb.datasets import dataset_kwargs, make_dataset
@@ -511,6 +519,34 @@ def open_loop_analysis(cfg: DictConfig, run: RunDir, flow: dict, trajs: TensorDi
     return out
 
 
+def tracked_analysis(cfg: DictConfig, run: RunDir, flow: dict, trajs: TensorDictBase, meta: dict, *,
+                     progress: bool) -> dict | None:
+    """``analysis.tracked``: the flow's improvement with every state path tracked in closed loop (generated
+    Meta-World data only, else None; off by default).
+
+    Fits a goal-conditioned inverse-dynamics tracker on the dataset (``analysis.tracker_steps`` Adam steps,
+    seeded by ``seed``) and tracks the original top-k and the final set's generated trajectories in the
+    simulator (:func:`torchrl_ftb.analysis.tracked_improvement`); writes the per-sample numbers to
+    ``tracked.json`` and returns the summary.
+    """
+    analysis = cfg.get("analysis", {})
+    if not bool(analysis.get("tracked", False)):
+        return None
+    if meta.get("domain") != "metaworld" or "per_trajectory" not in meta:
+        return None  # no goals and starts to track from (toy, locomotion, D4RL/Minari files)
+    steps = int(analysis.get("tracker_steps", 4000))
+    if steps < 1:
+        raise ValueError(f"analysis.tracker_steps={steps}: must be >= 1")
+    horizon = _optional_int(cfg.flow.get("true_return_horizon")) or int(cfg.env.max_episode_steps)
+    tracker = fit_path_tracker(trajs, steps=steps, seed=int(cfg.seed), progress=progress)
+    out = tracked_improvement(flow["trajectories"], flow["original"], torch.as_tensor(flow["source_step"]) > 0,
+                              trajs, meta, task=str(cfg.env.name), horizon=horizon, tracker=tracker,
+                              original_rows=flow.get("original_indices"), progress=progress)
+    samples = out.pop("samples")
+    write_json(run.path / "tracked.json", {**out, "tracker_steps": steps, "samples": samples})
+    return out
+
+
 # ====================================================================
 # Reporting
 # ---------
@@ -564,6 +600,19 @@ def final_table(metrics: dict) -> list[tuple[str, str]]:
                          "distance, m: sample vs that start",
                          f"{_fmt(ol['start_distance_median'])} / {_fmt(ol['start_hand_object_median'])} vs "
                          f"{_fmt(ol['data_start_hand_object_median'])}"))
+    if "tracked" in metrics.get("analysis", {}):
+        tr = metrics["analysis"]["tracked"]
+        t, fid, gen = tr["tracked"], tr["fidelity"], tr["generated"]
+        rows.append((f"true return top-k tracked in closed loop (stop rule, {int(tr['horizon'])} steps): "
+                     "mean / max before -> after",
+                     f"{t['true_return_mean_before']:.4g} -> {t['true_return_mean_after']:.4g} / "
+                     f"{t['true_return_max_before']:.4g} -> {t['true_return_max_after']:.4g}"))
+        rows.append(("tracker on the top-k: recorded -> tracked mean (hand off its path, m, median)",
+                     f"{fid['recorded_mean']:.4g} -> {fid['tracked_mean']:.4g} ({_fmt(fid['hand_deviation_median'])})"))
+        if gen["num_generated"]:
+            rows.append(("generated in final set, tracked: return claimed -> tracked (hand off its path, m, median)",
+                         f"{gen['claimed_stop_rule_mean']:.4g} -> {gen['tracked_stop_rule_mean']:.4g} "
+                         f"({_fmt(gen['hand_deviation_median'])})"))
     rows += [
         ("flow steps run / planned", f"{int(fl['flow_steps_run'])} / {int(fl['flow_steps_planned'])}"),
         ("generated trajectories in final set", _fmt(fl["fraction_generated_in_final"])),
@@ -818,6 +867,10 @@ def run(cfg: DictConfig) -> dict:
     if (open_loop := open_loop_analysis(cfg, run_dir, flow, trajs, meta, progress=progress)) is not None:
         analysis["open_loop"] = open_loop
         timed("open_loop", t0)
+    t0 = time.perf_counter()
+    if (tracked := tracked_analysis(cfg, run_dir, flow, trajs, meta, progress=progress)) is not None:
+        analysis["tracked"] = tracked
+        timed("tracked", t0)
 
     metrics = {
         "env": cfg.env.name, "preset": cfg.preset, "teacher": teacher.name, "seed": int(cfg.seed),

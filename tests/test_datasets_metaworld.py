@@ -298,9 +298,12 @@ def test_open_loop_bench_replays_recorded_trajectories_to_the_returns_read_off_t
 
 @pytest.mark.integration
 def test_tracked_replay_reads_both_sides_through_the_same_tracker(tiny_dataset, tmp_path):
-    """bench/tracked_replay.py (torchrl_ftb.analysis.tracked_improvement) on a run directory whose
-    "generated" trajectories are recorded ones: a generated path tracked from its own start is the same
-    episode as its top-k twin, so top-k -> final is unchanged, and the fidelity compares with the recording."""
+    """bench/tracked_replay.py (torchrl_ftb.analysis.tracked_improvement) and the recipe's analysis.tracked
+    on a run directory whose "generated" trajectories are recorded ones: a generated path tracked from its
+    own start is the same episode as its top-k twin, so top-k -> final is unchanged, and the fidelity
+    compares with the recording."""
+    import json
+
     from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
 
@@ -329,6 +332,29 @@ def test_tracked_replay_reads_both_sides_through_the_same_tracker(tiny_dataset, 
     assert out["fidelity"]["recorded_mean"] == pytest.approx(float(true_return(td, horizon=150)[[1, 3, 0, 2]].mean()))
     assert out["fidelity"]["recorded_success_rate"] == float(td["next", "success"].any(-2).double().mean()) and out["fidelity"]["hand_deviation_median"] >= 0
     assert out["inpaint_start"] is False and out["top_k"] == 4
+    # the recipe's analysis.tracked (off by default): tracked.json and the report rows
+    import types
+
+    recipe = load_script(root / "recipes" / "ftb_offline.py", "recipe_tracked_mw")
+    run = types.SimpleNamespace(path=tmp_path)
+    flow = {"trajectories": final, "original": original, "source_step": torch.tensor([1, 1, 0, 0]),
+            "original_indices": torch.tensor([1, 3, 0, 2])}
+    assert recipe.tracked_analysis(cfg, run, flow, td, meta, progress=False) is None  # off by default
+    on = OmegaConf.merge(cfg, {"analysis": {"tracked": True, "tracker_steps": 50}})
+    ours = recipe.tracked_analysis(on, run, flow, td, meta, progress=False)
+    assert ours["fidelity"] == out["fidelity"] and ours["tracked"] == out["tracked"] and "samples" not in ours
+    assert len(json.loads((tmp_path / "tracked.json").read_text())["samples"]) == 2
+    table = dict(recipe.final_table({"env": "button-press-v3", "preset": "cpu", "teacher": "return", "wall_time_s": 1.0,
+                                     "eval": {"return_mean": 0.0, "return_std": 0.0, "length_mean": 1.0},
+                                     "flow": {"score_mean_before": 0.0, "score_mean_after": 1.0, "flow_steps_run": 1,
+                                              "flow_steps_planned": 1, "fraction_generated_in_final": 0.5},
+                                     "score_quality": {}, "analysis": {"tracked": ours}}))
+    assert table["true return top-k tracked in closed loop (stop rule, 150 steps): mean / max before -> after"]
+    assert "generated in final set, tracked: return claimed -> tracked (hand off its path, m, median)" in table
+    assert recipe.tracked_analysis(on, run, flow, td, {"domain": "toy"}, progress=False) is None
+    with pytest.raises(ValueError, match="analysis.tracker_steps=0"):
+        recipe.tracked_analysis(OmegaConf.merge(on, {"analysis": {"tracker_steps": 0}}), run, flow, td, meta,
+                                progress=False)
     tracker = fit_path_tracker(td, steps=5, hidden=8)
     with pytest.raises(ValueError, match="not a generated Meta-World one"):
         tracked_improvement(final, original, torch.tensor([1, 1, 0, 0]) > 0, td, {"domain": "toy"},
