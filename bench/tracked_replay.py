@@ -24,7 +24,8 @@ sys.path.insert(0, str(ROOT / "bench"))
 from flow_generated import require_finished_runs  # noqa: E402
 from open_loop import load_flow  # noqa: E402
 
-from torchrl_ftb.analysis import fit_path_tracker, tracked_improvement  # noqa: E402
+from torchrl_ftb.analysis import tracked_improvement  # noqa: E402
+from torchrl_ftb.policy import fit_path_tracker  # noqa: E402
 from torchrl_ftb.provenance import run_record, write_json  # noqa: E402
 
 

@@ -44,7 +44,6 @@ from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDict, TensorDictBase
 
 from torchrl_ftb.analysis import (
-    fit_path_tracker,
     novelty,
     open_loop_improvement,
     plot_flow_curves,
@@ -77,6 +76,7 @@ from torchrl_ftb.envs import (
 )
 from torchrl_ftb.flow import FlowToBetter, true_return_score
 from torchrl_ftb.policy import (
+    fit_path_tracker,
     evaluate_policy,
     load_bc_checkpoint,
     make_bc_actor_for,
@@ -470,6 +470,23 @@ def stage_flow(cfg, run: RunDir, trajs, scores, block_ids, sampler, model, true_
         "trajectories": res.trajectories, "original": res.original, "generated": res.generated}
 
 
+def relabel_generated(cfg, improved: TensorDictBase, generated: torch.Tensor, trajs: TensorDictBase) -> TensorDictBase:
+    """``bc.relabel_actions``: the final set with its generated trajectories' actions replaced by those a
+    goal-conditioned inverse-dynamics tracker fitted on the dataset gives for their own states
+    (:meth:`torchrl_ftb.policy.PathTracker.relabel`; ``bc.tracker_steps`` Adam steps, seeded by ``seed``).
+    Off (the paper's): the diffuser's own actions."""
+    value = cfg.bc.get("relabel_actions", False)
+    if not isinstance(value, bool):
+        raise ValueError(f"bc.relabel_actions={value!r}: must be true or false")
+    if not value or not bool(torch.as_tensor(generated).any()):
+        return improved
+    steps = int(cfg.bc.get("tracker_steps", 4000))
+    if steps < 1:
+        raise ValueError(f"bc.tracker_steps={steps}: must be >= 1")
+    tracker = fit_path_tracker(trajs, steps=steps, seed=int(cfg.seed), progress=bool(cfg.progress))
+    return tracker.relabel(improved, torch.as_tensor(generated).bool().cpu())
+
+
 def stage_bc(cfg, run: RunDir, improved, device, logger):
     b = cfg.bc
     flat = trajectories_to_flat(improved.select("observation", "action", "mask"))
@@ -817,7 +834,10 @@ def run(cfg: DictConfig) -> dict:
 
     # 7. BC -----------------------------------------------------------------------------
     t0 = time.perf_counter()
-    actor, bc_summary = stage_bc(cfg, run_dir, flow["trajectories"], device, logger)
+    improved = flow["trajectories"]
+    if not run_dir.done("bc"):
+        improved = relabel_generated(cfg, improved, torch.as_tensor(flow["source_step"]) > 0, trajs)
+    actor, bc_summary = stage_bc(cfg, run_dir, improved, device, logger)
     timed("bc", t0)
     partial_metrics["bc"] = bc_summary
     if (out := stopped("bc")) is not None:

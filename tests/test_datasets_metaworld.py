@@ -307,7 +307,8 @@ def test_tracked_replay_reads_both_sides_through_the_same_tracker(tiny_dataset, 
     from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
 
-    from torchrl_ftb.analysis import fit_path_tracker, tracked_improvement
+    from torchrl_ftb.analysis import tracked_improvement
+    from torchrl_ftb.policy import fit_path_tracker
     from torchrl_ftb.data.labels import true_return
 
     td, meta, cache = tiny_dataset

@@ -4,7 +4,8 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from torchrl_ftb.analysis import PathTracker, fit_path_tracker, track_paths
+from torchrl_ftb.analysis import track_paths
+from torchrl_ftb.policy import PathTracker, fit_path_tracker
 
 
 def _mocap_like(n: int = 64, h: int = 20, seed: int = 0) -> TensorDict:

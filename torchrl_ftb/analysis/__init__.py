@@ -10,13 +10,11 @@ from torchrl_ftb.analysis.replay import (
     replay_returns,
     summarize_samples,
 )
-from torchrl_ftb.analysis.tracking import PathTracker, fit_path_tracker, track_paths, tracked_improvement
+from torchrl_ftb.analysis.tracking import track_paths, tracked_improvement
 
 __all__ = [
-    "PathTracker",
     "dynamics_error",
     "episode_jobs",
-    "fit_path_tracker",
     "improvement",
     "match_rows",
     "metaworld_state_returns",

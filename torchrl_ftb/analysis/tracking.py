@@ -11,127 +11,21 @@ The simulator's return of that episode is the path's *tracked* return.
 The tracker is imperfect, so a tracked return is compared only with another tracked return: the original
 top-k is tracked too, and :func:`tracked_improvement` reports top-k → final set with both sides read the
 same way, beside how closely the tracker reproduces the recorded top-k (its fidelity). The simulator is
-used only for this reading, never by the flow. Only generated Meta-World datasets carry the goals and
+used only for this reading, never by the flow. The tracker is
+:class:`torchrl_ftb.policy.PathTracker` (:func:`torchrl_ftb.policy.fit_path_tracker`). Only generated Meta-World datasets carry the goals and
 starts this needs.
 """
 from __future__ import annotations
 
-import numpy as np
 import torch
 from tensordict import TensorDictBase
-from torch import nn
 from tqdm.auto import tqdm
 
 from torchrl_ftb.analysis.replay import episode_jobs, match_rows, metaworld_state_returns, nearest_start, replay_returns
 from torchrl_ftb.data.labels import true_return
 from torchrl_ftb.datasets.metaworld import generate_metaworld_episodes
 from torchrl_ftb.flow.flow import clip_actions, return_summary
-
-#: the observation dimensions a tracker heads for: the hand's position and the gripper's opening
-TRACKED_DIMS = (0, 1, 2, 3)
-
-
-class PathTracker(nn.Module):
-    """Goal-conditioned inverse dynamics: ``(o_t, p_{t+1}[dims] - o_t[dims]) -> a_t``, with ``p`` the path.
-
-    An MLP on z-scored inputs (statistics of the transitions it is fitted on, :func:`fit_path_tracker`);
-    actions are clipped to ``[-1, 1]``. :meth:`controller` gives the closed-loop form for one path.
-
-    Example:
-        >>> tracker = PathTracker(39, 4, hidden=8)
-        >>> tracker(torch.zeros(2, 39), torch.zeros(2, 39)).shape
-        torch.Size([2, 4])
-    """
-
-    def __init__(self, obs_dim: int, action_dim: int, *, hidden: int = 512,
-                 dims: tuple[int, ...] = TRACKED_DIMS) -> None:
-        super().__init__()
-        self.dims = tuple(int(d) for d in dims)
-        in_dim = obs_dim + len(self.dims)
-        self.net = nn.Sequential(nn.Linear(in_dim, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(),
-                                 nn.Linear(hidden, action_dim))
-        self.register_buffer("loc", torch.zeros(in_dim))
-        self.register_buffer("scale", torch.ones(in_dim))
-
-    def features(self, observation: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-        dims = list(self.dims)
-        return torch.cat([observation, target[..., dims] - observation[..., dims]], -1)
-
-    def forward(self, observation: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-        x = (self.features(observation, target) - self.loc) / self.scale
-        return self.net(x).clamp(-1.0, 1.0)
-
-    def controller(self, path: np.ndarray, length: int):
-        """``obs -> action`` heading, at its ``t``-th call, for ``path[min(t + 1, length - 1)]`` (then it holds
-        the path's last state). The MLP runs in numpy: one small call per simulator step."""
-        if length < 1:
-            raise ValueError(f"PathTracker.controller: a path needs at least one step, got length {length}")
-        layers = [m for m in self.net if isinstance(m, nn.Linear)]
-        weights = [(m.weight.detach().double().cpu().numpy().T, m.bias.detach().double().cpu().numpy())
-                   for m in layers]
-        loc, scale = self.loc.double().cpu().numpy(), self.scale.double().cpu().numpy()
-        dims, path, step = list(self.dims), np.asarray(path, dtype=np.float64), [0]
-
-        def act(obs: np.ndarray) -> np.ndarray:
-            target = path[min(step[0] + 1, length - 1)]
-            step[0] += 1
-            h = (np.concatenate([obs, target[dims] - obs[dims]]) - loc) / scale
-            for i, (w, b) in enumerate(weights):
-                h = h @ w + b
-                if i < len(weights) - 1:
-                    h = np.maximum(h, 0.0)
-            return np.clip(h, -1.0, 1.0)
-
-        return act
-
-
-def fit_path_tracker(data: TensorDictBase, *, steps: int = 4000, batch_size: int = 1024, lr: float = 1e-3,
-                     hidden: int = 512, dims: tuple[int, ...] = TRACKED_DIMS, seed: int = 0,
-                     progress: bool = False) -> PathTracker:
-    """Fit a :class:`PathTracker` by regression on a dataset's transitions (pairs of consecutive valid steps).
-
-    A hand-written loop: an inverse-dynamics regression used only by this analysis, which no torchrl loss
-    covers (``BCLoss`` regresses an action on one observation). Seeded: the same data and seed give the
-    same tracker.
-
-    Args:
-        data: ``[N, H]`` real trajectories (``observation``, ``action``, ``mask``).
-        steps, batch_size, lr, hidden: Adam steps on the mean squared action error, its batch, step size
-            and the MLP width.
-        dims: the observation dimensions the tracker heads for (Meta-World: hand and gripper).
-        seed: initialisation and batches.
-        progress: a progress bar.
-
-    Example:
-        >>> from tensordict import TensorDict
-        >>> td = TensorDict({"observation": torch.randn(2, 5, 39), "action": torch.rand(2, 5, 4),
-        ...                  "mask": torch.ones(2, 5, dtype=torch.bool)}, [2, 5])
-        >>> fit_path_tracker(td, steps=2, hidden=8).dims
-        (0, 1, 2, 3)
-    """
-    obs, act, mask = data.get("observation").float().cpu(), data.get("action").float().cpu(), data.get("mask").cpu()
-    pair = mask[:, :-1] & mask[:, 1:]
-    if not bool(pair.any()):
-        raise ValueError("fit_path_tracker: the data have no pair of consecutive valid steps to fit on")
-    if max(dims) >= obs.shape[-1]:
-        raise ValueError(f"fit_path_tracker: dims {dims} exceed the observation's {obs.shape[-1]} dimensions")
-    with torch.random.fork_rng():
-        torch.manual_seed(seed)
-        tracker = PathTracker(obs.shape[-1], act.shape[-1], hidden=hidden, dims=dims)
-        x = tracker.features(obs[:, :-1], obs[:, 1:])[pair]
-        y = act[:, :-1][pair].clamp(-1.0, 1.0)
-        tracker.loc.copy_(x.mean(0))
-        tracker.scale.copy_(x.std(0).clamp_min(1e-6))
-        x = (x - tracker.loc) / tracker.scale
-        opt = torch.optim.Adam(tracker.net.parameters(), lr=lr)
-        for _ in tqdm(range(steps), desc="path tracker", disable=not progress):
-            idx = torch.randint(x.shape[0], (min(batch_size, x.shape[0]),))
-            loss = (tracker.net(x[idx]) - y[idx]).pow(2).mean()
-            opt.zero_grad()
-            loss.backward()
-            opt.step()
-    return tracker.eval()
-
+from torchrl_ftb.policy.inverse_dynamics import PathTracker
 
 def track_paths(task: str, jobs: list[tuple[int, int]], paths: torch.Tensor, lengths: list[int],
                 tracker: PathTracker, *, seed: int, max_steps: int, on_episode=None) -> list[dict]:

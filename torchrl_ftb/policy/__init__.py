@@ -1,4 +1,4 @@
-"""Policy stage: BC actor, behaviour cloning (torchrl ``BCLoss``), evaluation rollouts."""
+"""Policy stage: BC actor, behaviour cloning (torchrl ``BCLoss``), evaluation rollouts, a goal-conditioned inverse-dynamics tracker."""
 from torchrl_ftb.policy.actor import (
     ObservationNormalizer,
     SquashedMLP,
@@ -8,12 +8,16 @@ from torchrl_ftb.policy.actor import (
 )
 from torchrl_ftb.policy.bc import load_bc_checkpoint, make_transition_buffer, train_bc
 from torchrl_ftb.policy.evaluate import episode_statistics, evaluate_policy
+from torchrl_ftb.policy.inverse_dynamics import TRACKED_DIMS, PathTracker, fit_path_tracker
 
 __all__ = [
     "ObservationNormalizer",
+    "PathTracker",
+    "TRACKED_DIMS",
     "SquashedMLP",
     "episode_statistics",
     "evaluate_policy",
+    "fit_path_tracker",
     "load_bc_checkpoint",
     "make_bc_actor",
     "make_bc_actor_for",
