@@ -61,3 +61,40 @@ def test_tracker_fit_is_seeded_and_rejects_bad_input():
         PathTracker(39, 4, hidden=4).controller(np.zeros((3, 39)), 0)
     with pytest.raises(ValueError, match="2 jobs, 1 paths and 1 lengths"):
         track_paths("button-press-v3", [(0, 0), (0, 1)], torch.zeros(1, 3, 39), [3], a, seed=0, max_steps=3)
+
+
+def test_relabel_changes_only_the_chosen_rows_valid_steps():
+    data = _mocap_like(n=4, h=6)
+    data["mask"][1, 4:] = False
+    tracker = fit_path_tracker(data, steps=200, hidden=32, seed=0)
+    out = tracker.relabel(data, torch.tensor([False, True, False, False]))
+    assert torch.equal(out["action"][[0, 2, 3]], data["action"][[0, 2, 3]])
+    assert torch.equal(out["action"][1, 4:], data["action"][1, 4:])  # padding kept
+    assert not torch.equal(out["action"][1, :4], data["action"][1, :4])
+    # the relabelled actions explain the hand's path about as well as the recorded ones (mocap rule)
+    step = data["observation"][1, 1:4, 0:3] - data["observation"][1, 0:3, 0:3]
+    assert float((out["action"][1, :3, :3] / 100 - step).abs().max()) < 0.004
+    with pytest.raises(ValueError, match=r"rows has shape \[3\], expected \[4\]"):
+        tracker.relabel(data, torch.ones(3, dtype=torch.bool))
+
+
+def test_recipe_relabel_generated_is_off_by_default_and_checks_its_options():
+    from pathlib import Path
+
+    from omegaconf import OmegaConf
+
+    from torchrl_ftb.testing import load_script
+
+    recipe = load_script(Path(__file__).resolve().parents[1] / "recipes" / "ftb_offline.py", "recipe_relabel")
+    data = _mocap_like(n=4, h=6)
+    cfg = OmegaConf.create({"seed": 0, "progress": False, "bc": {}})
+    generated = torch.tensor([True, False, False, False])
+    assert recipe.relabel_generated(cfg, data, generated, data) is data  # off: the diffuser's actions
+    on = OmegaConf.merge(cfg, {"bc": {"relabel_actions": True, "tracker_steps": 20}})
+    out = recipe.relabel_generated(on, data, generated, data)
+    assert torch.equal(out["action"][1:], data["action"][1:]) and not torch.equal(out["action"][0], data["action"][0])
+    assert recipe.relabel_generated(on, data, torch.zeros(4, dtype=torch.bool), data) is data  # nothing generated
+    with pytest.raises(ValueError, match="bc.relabel_actions='yes'"):
+        recipe.relabel_generated(OmegaConf.merge(cfg, {"bc": {"relabel_actions": "yes"}}), data, generated, data)
+    with pytest.raises(ValueError, match="bc.tracker_steps=0"):
+        recipe.relabel_generated(OmegaConf.merge(on, {"bc": {"tracker_steps": 0}}), data, generated, data)
