@@ -10,10 +10,12 @@ and compare top-k -> final set with both sides read the same way. Open-loop repl
 Usage::
 
     python bench/tracked_replay.py --run-dirs RUN [RUN ...] --horizon 500 --out bench/results/tracked.json
+    python bench/tracked_replay.py --summarize bench/results/tracked_replay_s31/*.json
 """
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 
@@ -39,15 +41,46 @@ def tracked(run: Path, *, horizon: int, tracker_steps: int, seed: int, progress:
             "inpaint_start": bool(cfg.diffuser.get("inpaint_start", False)), **out}
 
 
+SUMMARY_HEADER = ("| run | task, seed | samples start | generated in final set | tracker on the top-k: recorded → tracked "
+                  "mean (hand off path, median) | generated: claimed → tracked (hand off path, median; tracks that "
+                  "succeed) | mean: top-k → final, claimed / **tracked** | max: top-k → final, claimed / **tracked** |")
+
+
+def summarize(paths: list[Path]) -> str:
+    """One Markdown row (:data:`SUMMARY_HEADER`) per run of this bench's results files."""
+    rows = [SUMMARY_HEADER, "|" + "---|" * (SUMMARY_HEADER.count(" | ") + 1)]
+    cm = lambda v: "—" if v is None else f"{100 * v:.1f} cm"  # noqa: E731
+    for path in paths:
+        for run, e in json.loads(Path(path).read_text())["runs"].items():
+            t, c, f, g = e["tracked"], e["claimed"], e["fidelity"], e["generated"]
+            n = g["num_generated"]
+            gen = (f"{g['claimed_stop_rule_mean']:.0f} → {g['tracked_stop_rule_mean']:.0f} ({cm(g['hand_deviation_median'])}; "
+                   f"{100 * g['tracked_success_rate']:.0f}%)" if n else "—")
+            rows.append(f"| {Path(run).parent.parent.name if Path(run).name.startswith('seed') else Path(run).name} | "
+                        f"{e['env']} s{e['seed']} | {'held' if e['inpaint_start'] else 'anywhere'} | {n} | "
+                        f"{f['recorded_mean']:.0f} → {f['tracked_mean']:.0f} ({cm(f['hand_deviation_median'])}) | {gen} | "
+                        f"{c['true_return_mean_before']:.0f} → {c['true_return_mean_after']:.0f} / "
+                        f"**{t['true_return_mean_before']:.0f} → {t['true_return_mean_after']:.0f}** | "
+                        f"{c['true_return_max_before']:.0f} → {c['true_return_max_after']:.0f} / "
+                        f"**{t['true_return_max_before']:.0f} → {t['true_return_max_after']:.0f}** |")
+    return "\n".join(rows)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--run-dirs", nargs="+", type=Path, required=True)
+    parser.add_argument("--run-dirs", nargs="+", type=Path)
+    parser.add_argument("--summarize", nargs="+", type=Path, help="print the Markdown table of these results files")
     parser.add_argument("--horizon", type=int, default=500, help="the stop-rule return's horizon (Meta-World: 500)")
     parser.add_argument("--tracker-steps", type=int, default=4000, help="Adam steps fitting the tracker")
     parser.add_argument("--seed", type=int, default=0, help="the tracker's seed")
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "tracked_replay.json")
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args()
+    if args.summarize:
+        print(summarize(args.summarize))
+        return
+    if not args.run_dirs:
+        parser.error("give --run-dirs (or --summarize)")
     require_finished_runs(parser, args.run_dirs)
     record = {**run_record(config={"run_dirs": [str(r) for r in args.run_dirs], "horizon": args.horizon,
                                    "tracker_steps": args.tracker_steps, "seed": args.seed}), "runs": {}}

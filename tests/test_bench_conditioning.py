@@ -95,3 +95,20 @@ def test_open_loop_summary_reads_bench_files_and_recipe_cells(tmp_path):
     bad.write_text(json.dumps({"metrics": {"env": "x", "analysis": {}}}))
     with pytest.raises(SystemExit, match="analysis.open_loop"):
         bench.summarize([bad])
+
+
+def test_tracked_replay_summary_reads_its_results_files(tmp_path):
+    """bench/tracked_replay.py --summarize: one Markdown row per run, claimed beside tracked."""
+    bench = load_script(ROOT / "bench" / "tracked_replay.py", "bench_tracked_summary")
+    summ = lambda a, b, c, d: {"true_return_mean_before": a, "true_return_mean_after": b,  # noqa: E731
+                               "true_return_max_before": c, "true_return_max_after": d}
+    entry = {"env": "drawer-open-v3", "seed": 4, "inpaint_start": True, "tracked": summ(10, 12, 40, 41),
+             "claimed": summ(11, 13, 42, 42),
+             "fidelity": {"recorded_mean": 11.0, "tracked_mean": 10.0, "hand_deviation_median": 0.014},
+             "generated": {"num_generated": 2, "claimed_stop_rule_mean": 5.0, "tracked_stop_rule_mean": 6.0,
+                           "hand_deviation_median": 0.02, "tracked_success_rate": 0.5}}
+    path = tmp_path / "t.json"
+    path.write_text(json.dumps({"runs": {"/r/cell_x/drawer-open-v3/seed4": entry}}))
+    rows = bench.summarize([path]).splitlines()
+    assert rows[2] == ("| cell_x | drawer-open-v3 s4 | held | 2 | 11 → 10 (1.4 cm) | 5 → 6 (2.0 cm; 50%) | "
+                       "11 → 13 / **10 → 12** | 42 → 42 / **40 → 41** |")
