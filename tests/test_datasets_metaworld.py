@@ -220,19 +220,12 @@ def test_open_loop_replay_of_recorded_actions_reproduces_the_episodes(tiny_datas
         replay_metaworld_actions("button-press-v3", jobs[:1], lazy * 2, seed=0)
 
 
-@pytest.mark.integration
-def test_open_loop_bench_replays_recorded_trajectories_to_the_returns_read_off_their_states(tiny_dataset, tmp_path):
-    """bench/open_loop.py end to end on a run directory whose "generated" trajectories are recorded ones:
-    the simulator's replay and the reward read off the states agree, and each starts at its own episode."""
-    import json
-    import types
-
+def _fake_run_dir(td, cache, tmp_path):
+    """A finished run directory on ``tiny_dataset`` whose final set's "generated" trajectories are its rows 0
+    (expert, succeeds) and 2 (random), recorded ones: ``(repo root, cfg, dataset rows, final, original)``."""
     from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
 
-    from torchrl_ftb.analysis import open_loop_improvement
-
-    td, meta, cache = tiny_dataset
     root = Path(__file__).resolve().parents[1]
     with initialize_config_dir(config_dir=str(root / "recipes" / "config"), version_base="1.3"):
         cfg = compose(config_name="ftb_offline", overrides=[
@@ -241,10 +234,26 @@ def test_open_loop_bench_replays_recorded_trajectories_to_the_returns_read_off_t
     (tmp_path / "checkpoints").mkdir()
     OmegaConf.save(cfg, tmp_path / "config.yaml", resolve=True)
     keep = td.select("observation", "action", "mask")
-    final, original = keep[[0, 2, 1, 3]], keep[[1, 3, 0, 2]]  # rows 0 (expert, succeeds) and 2 (random) "generated"
+    final, original = keep[[0, 2, 1, 3]], keep[[1, 3, 0, 2]]
     torch.save({"trajectories": {"data": final.to_dict(), "batch_size": list(final.batch_size)},
                 "original": {"data": original.to_dict(), "batch_size": list(original.batch_size)},
                 "source_step": torch.tensor([1, 1, 0, 0])}, tmp_path / "checkpoints" / "flow.pt")
+    return root, cfg, keep, final, original
+
+
+@pytest.mark.integration
+def test_open_loop_bench_replays_recorded_trajectories_to_the_returns_read_off_their_states(tiny_dataset, tmp_path):
+    """bench/open_loop.py end to end on a run directory whose "generated" trajectories are recorded ones:
+    the simulator's replay and the reward read off the states agree, and each starts at its own episode."""
+    import json
+    import types
+
+    from omegaconf import OmegaConf
+
+    from torchrl_ftb.analysis import open_loop_improvement
+
+    td, meta, cache = tiny_dataset
+    root, cfg, keep, final, original = _fake_run_dir(td, cache, tmp_path)  # rows 0, 2 "generated"
     bench = load_script(root / "bench" / "open_loop.py", "bench_open_loop_mw")
     out = bench.open_loop(tmp_path, horizon=150, progress=False)
     assert out["num_generated"] == 2 and [s["start_row"] for s in out["samples"]] == [0, 2]
@@ -304,7 +313,6 @@ def test_tracked_replay_reads_both_sides_through_the_same_tracker(tiny_dataset, 
     compares with the recording."""
     import json
 
-    from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
 
     from torchrl_ftb.analysis import tracked_improvement
@@ -312,18 +320,7 @@ def test_tracked_replay_reads_both_sides_through_the_same_tracker(tiny_dataset, 
     from torchrl_ftb.data.labels import true_return
 
     td, meta, cache = tiny_dataset
-    root = Path(__file__).resolve().parents[1]
-    with initialize_config_dir(config_dir=str(root / "recipes" / "config"), version_base="1.3"):
-        cfg = compose(config_name="ftb_offline", overrides=[
-            "env.name=button-press-v3", "env.max_episode_steps=150", "dataset.episodes_per_group=1",
-            "dataset.noise=0.0", f"dataset.cache_dir={cache}", f"run_dir={tmp_path}"])
-    (tmp_path / "checkpoints").mkdir()
-    OmegaConf.save(cfg, tmp_path / "config.yaml", resolve=True)
-    keep = td.select("observation", "action", "mask")
-    final, original = keep[[0, 2, 1, 3]], keep[[1, 3, 0, 2]]
-    torch.save({"trajectories": {"data": final.to_dict(), "batch_size": list(final.batch_size)},
-                "original": {"data": original.to_dict(), "batch_size": list(original.batch_size)},
-                "source_step": torch.tensor([1, 1, 0, 0])}, tmp_path / "checkpoints" / "flow.pt")
+    root, cfg, keep, final, original = _fake_run_dir(td, cache, tmp_path)
     bench = load_script(root / "bench" / "tracked_replay.py", "bench_tracked_replay_mw")
     out = bench.tracked(tmp_path, horizon=150, tracker_steps=50, seed=0, progress=False)
     t = out["tracked"]

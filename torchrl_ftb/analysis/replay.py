@@ -119,6 +119,29 @@ def replay_returns(episodes: list[dict], *, horizon: int) -> torch.Tensor:
     return out
 
 
+def checked_final_set(name: str, task: str, final: TensorDictBase, original: TensorDictBase, generated: torch.Tensor,
+                      meta: dict) -> tuple[TensorDictBase, TensorDictBase, torch.Tensor]:
+    """The simulator readings' shared input check: a generated Meta-World dataset (its goals and starts) and one
+    ``generated`` flag per final-set trajectory; returns ``(final, original, generated)`` on CPU, trajectory keys only.
+
+    Example:
+        >>> from tensordict import TensorDict
+        >>> td = TensorDict({"observation": torch.zeros(2, 3, 39), "action": torch.zeros(2, 3, 4),
+        ...                  "mask": torch.ones(2, 3, dtype=torch.bool)}, [2, 3])
+        >>> checked_final_set("f", "t", td, td, torch.tensor([1, 0]), {"domain": "metaworld", "per_trajectory": {}})[2]
+        tensor([ True, False])
+    """
+    if meta.get("domain") != "metaworld" or "per_trajectory" not in meta:
+        raise ValueError(f"{name}: {task}'s dataset is not a generated Meta-World one "
+                         f"(its goals and starts are needed to replay from them)")
+    generated = torch.as_tensor(generated, dtype=torch.bool).cpu()
+    if generated.shape != final.batch_size[:1]:
+        raise ValueError(f"{name}: generated has shape {list(generated.shape)}, "
+                         f"expected [{final.batch_size[0]}] (one flag per final-set trajectory)")
+    keys = ("observation", "action", "mask")
+    return final.select(*keys).to("cpu"), original.select(*keys).to("cpu"), generated
+
+
 def open_loop_improvement(
     final: TensorDictBase,
     original: TensorDictBase,
@@ -163,15 +186,7 @@ def open_loop_improvement(
         ...                             data, meta, task="button-press-v3", horizon=500)  # doctest: +SKIP
         >>> out["improvement"]["stop_rule_500"]["replayed"]["true_return_mean_after"]  # doctest: +SKIP
     """
-    if meta.get("domain") != "metaworld" or "per_trajectory" not in meta:
-        raise ValueError(f"open_loop_improvement: {task}'s dataset is not a generated Meta-World one "
-                         f"(its goals and starts are needed to replay from them)")
-    generated = torch.as_tensor(generated, dtype=torch.bool).cpu()
-    if generated.shape != final.batch_size[:1]:
-        raise ValueError(f"open_loop_improvement: generated has shape {list(generated.shape)}, "
-                         f"expected [{final.batch_size[0]}] (one flag per final-set trajectory)")
-    final = final.select("observation", "action", "mask").to("cpu")
-    original = original.select("observation", "action", "mask").to("cpu")
+    final, original, generated = checked_final_set("open_loop_improvement", task, final, original, generated, meta)
     data_obs = data["observation"]
     # claimed: read off the states, as the flow's statistics (for recorded states too: exact up to the
     # rewarder's approximations, e.g. the last step's next observation, about 1 % on a return)

@@ -21,7 +21,7 @@ import torch
 from tensordict import TensorDictBase
 from tqdm.auto import tqdm
 
-from torchrl_ftb.analysis.replay import episode_jobs, match_rows, metaworld_state_returns, nearest_start, replay_returns
+from torchrl_ftb.analysis.replay import checked_final_set, episode_jobs, match_rows, metaworld_state_returns, nearest_start, replay_returns
 from torchrl_ftb.data.labels import true_return
 from torchrl_ftb.datasets.metaworld import generate_metaworld_episodes
 from torchrl_ftb.flow.flow import clip_actions, return_summary
@@ -96,15 +96,7 @@ def tracked_improvement(
         ...                           task="drawer-open-v3", horizon=500, tracker=tracker)  # doctest: +SKIP
         >>> out["tracked"]["true_return_mean_after"]  # doctest: +SKIP
     """
-    if meta.get("domain") != "metaworld" or "per_trajectory" not in meta:
-        raise ValueError(f"tracked_improvement: {task}'s dataset is not a generated Meta-World one "
-                         f"(its goals and starts are needed to track from them)")
-    generated = torch.as_tensor(generated, dtype=torch.bool).cpu()
-    if generated.shape != final.batch_size[:1]:
-        raise ValueError(f"tracked_improvement: generated has shape {list(generated.shape)}, "
-                         f"expected [{final.batch_size[0]}] (one flag per final-set trajectory)")
-    final = final.select("observation", "action", "mask").to("cpu")
-    original = original.select("observation", "action", "mask").to("cpu")
+    final, original, generated = checked_final_set("tracked_improvement", task, final, original, generated, meta)
     data_obs = data["observation"]
     rows = match_rows(original["observation"].float(), data_obs) if original_rows is None else original_rows.cpu()
     gen = final[generated]
