@@ -76,8 +76,8 @@ from torchrl_ftb.envs import (
 )
 from torchrl_ftb.flow import FlowToBetter, true_return_score
 from torchrl_ftb.policy import (
-    fit_path_tracker,
     evaluate_policy,
+    fit_path_tracker,
     load_bc_checkpoint,
     make_bc_actor_for,
     make_transition_buffer,
