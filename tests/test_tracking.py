@@ -98,3 +98,16 @@ def test_recipe_relabel_generated_is_off_by_default_and_checks_its_options():
         recipe.relabel_generated(OmegaConf.merge(cfg, {"bc": {"relabel_actions": "yes"}}), data, generated, data)
     with pytest.raises(ValueError, match="bc.tracker_steps=0"):
         recipe.relabel_generated(OmegaConf.merge(on, {"bc": {"tracker_steps": 0}}), data, generated, data)
+
+
+def test_controller_acts_as_the_module_does():
+    """The closed-loop form (numpy, one call per simulator step) gives the module's own actions along a path."""
+    tracker = fit_path_tracker(_mocap_like(n=8, h=5), steps=20, hidden=16, seed=0)
+    path = torch.randn(4, 39, dtype=torch.float64)
+    control = tracker.controller(path.numpy(), 4)
+    obs = torch.randn(5, 39, dtype=torch.float64)
+    got = torch.as_tensor(np.stack([control(o.numpy()) for o in obs]))
+    targets = path[[1, 2, 3, 3, 3]]  # the next state, then the last one held
+    with torch.no_grad():
+        want = tracker.double()(obs, targets)
+    torch.testing.assert_close(got, want)

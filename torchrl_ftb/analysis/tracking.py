@@ -11,9 +11,9 @@ The simulator's return of that episode is the path's *tracked* return.
 The tracker is imperfect, so a tracked return is compared only with another tracked return: the original
 top-k is tracked too, and :func:`tracked_improvement` reports top-k → final set with both sides read the
 same way, beside how closely the tracker reproduces the recorded top-k (its fidelity). The simulator is
-used only for this reading, never by the flow. The tracker is
-:class:`torchrl_ftb.policy.PathTracker` (:func:`torchrl_ftb.policy.fit_path_tracker`). Only generated Meta-World datasets carry the goals and
-starts this needs.
+used only for this reading, never by the flow. The tracker is :class:`torchrl_ftb.policy.PathTracker`
+(:func:`torchrl_ftb.policy.fit_path_tracker`). Only generated Meta-World datasets carry the goals and starts
+this needs.
 """
 from __future__ import annotations
 
@@ -21,11 +21,19 @@ import torch
 from tensordict import TensorDictBase
 from tqdm.auto import tqdm
 
-from torchrl_ftb.analysis.replay import checked_final_set, episode_jobs, match_rows, metaworld_state_returns, nearest_start, replay_returns
+from torchrl_ftb.analysis.replay import (
+    checked_final_set,
+    episode_jobs,
+    match_rows,
+    metaworld_state_returns,
+    nearest_start,
+    replay_returns,
+)
 from torchrl_ftb.data.labels import true_return
 from torchrl_ftb.datasets.metaworld import generate_metaworld_episodes
 from torchrl_ftb.flow.flow import clip_actions, return_summary
 from torchrl_ftb.policy.inverse_dynamics import PathTracker
+
 
 def track_paths(task: str, jobs: list[tuple[int, int]], paths: torch.Tensor, lengths: list[int],
                 tracker: PathTracker, *, seed: int, max_steps: int, on_episode=None) -> list[dict]:

@@ -104,11 +104,11 @@ def _run_episode(env, task: str, group: int, rng: np.random.Generator, *, noise:
     if expert:  # after the group's draws, so the goal and start are the episode's own
         policy_task = tasks.index(task)
     u = env.unwrapped
-    if policy_task >= 0 and tasks[policy_task] not in policies:
-        policies[tasks[policy_task]] = scripted_policy(tasks[policy_task])
-    policy = policies[tasks[policy_task]] if policy_task >= 0 else None
-    if controller is not None:
-        policy = controller
+    policy = controller
+    if policy is None and policy_task >= 0:  # a given controller needs no scripted policy built
+        if tasks[policy_task] not in policies:
+            policies[tasks[policy_task]] = scripted_policy(tasks[policy_task])
+        policy = policies[tasks[policy_task]]
 
     obs, _ = u.reset()
     steps = {k: [] for k in ("observation", "action", "next_observation", "reward", "success", "state")}
