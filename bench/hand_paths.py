@@ -28,20 +28,15 @@ from open_loop import load_flow  # noqa: E402
 
 from torchrl_ftb.analysis import episode_jobs, nearest_start  # noqa: E402
 from torchrl_ftb.datasets.metaworld import replay_metaworld_actions  # noqa: E402
+from torchrl_ftb.envs import metaworld_hand_steps  # noqa: E402
 from torchrl_ftb.provenance import run_record, write_json  # noqa: E402
 
 DRIFT_STEPS = (10, 25, 50, 100, 200)
 
 
-def hand_steps(trajs) -> tuple[torch.Tensor, torch.Tensor]:
-    """``[N, H - 1]`` per-step hand displacement (m) and the mask of consecutive valid steps."""
-    obs, mask = trajs["observation"].double(), trajs["mask"].bool()
-    return (obs[:, 1:, 0:3] - obs[:, :-1, 0:3]).norm(dim=-1), mask[:, 1:] & mask[:, :-1]
-
-
 def hand_paths(run: Path, *, replays: int) -> dict:
     cfg, data, meta, final, _, generated, _ = load_flow(run)
-    step, pair = hand_steps(data)
+    step, pair = metaworld_hand_steps(data)
     real = step[pair].float()
     q50, q999 = torch.quantile(real, torch.tensor([0.5, 0.999])).tolist()
     out = {"env": str(cfg.env.name), "seed": int(cfg.seed), "inpaint_start": bool(cfg.diffuser.get("inpaint_start", False)),
@@ -50,7 +45,7 @@ def hand_paths(run: Path, *, replays: int) -> dict:
     out["num_generated"] = int(gen.batch_size[0])
     if not out["num_generated"]:
         return out
-    gstep, gpair = hand_steps(gen)
+    gstep, gpair = metaworld_hand_steps(gen)
     out["generated_first_step_median"] = float(gstep[:, 0].median())
     out["generated_later_step_median"] = float(gstep[:, 1:][gpair[:, 1:]].median())
     out["generated_above_data_max"] = float(((gstep > real.max()) & gpair).any(-1).double().mean())

@@ -68,6 +68,8 @@ from torchrl_ftb.envs import (
     metaworld_frame_stack_check,
     metaworld_hand_model_check,
     metaworld_hand_model_error,
+    metaworld_hand_step_check,
+    metaworld_max_hand_step,
     metaworld_physics_errors,
     normalized_score_fn,
     observation_layout,
@@ -359,9 +361,14 @@ def stage_diffuser(cfg, run: RunDir, trajs, scores, block_ids, obs_dim, act_dim,
     return diffuser, summary
 
 
+#: The flow's optional Meta-World physics checks (``flow.<key>``) and what each one checks, for errors.
+PHYSICS_LIMIT_KEYS = {"max_frame_stack_error": "stacked previous frame", "max_hand_model_error": "mocap hand",
+                      "max_contactless_object_path": "hand-object contact", "max_hand_step": "hand speed"}
+
+
 def check_physics_limit_specs(f) -> None:
     """Raise a clear error for a malformed ``flow.max_*`` physics limit (see :func:`physical_validity_fn`)."""
-    for key in ("max_frame_stack_error", "max_hand_model_error", "max_contactless_object_path"):
+    for key in PHYSICS_LIMIT_KEYS:
         spec = f.get(key)
         if isinstance(spec, str) and key == "max_frame_stack_error":
             raise ValueError(f"flow.{key}={spec!r}: give metres; real data's frame-stack error is 0, so a "
@@ -372,10 +379,11 @@ def check_physics_limit_specs(f) -> None:
 
 def physical_validity_fn(f, trajs) -> tuple[Callable[[TensorDictBase], torch.Tensor] | None, dict[str, float]]:
     """The flow's optional Meta-World physics checks (``flow.max_frame_stack_error``,
-    ``flow.max_hand_model_error``, ``flow.max_contactless_object_path``; the hand model and the
-    hand's reach are fitted on the dataset), all of which must pass, and their limits in metres.
+    ``flow.max_hand_model_error``, ``flow.max_contactless_object_path``, ``flow.max_hand_step``; the
+    hand model and the hand's reach are fitted on the dataset), all of which must pass, and their
+    limits in metres.
 
-    The hand-model and contact limits may be relative, ``"<f>x"``: ``f`` times the largest value
+    The hand-model, contact and hand-step limits may be relative, ``"<f>x"``: ``f`` times the largest value
     of the proxy over the dataset's trajectories (:func:`torchrl_ftb.envs.physics_limit`). The
     frame-stack limit is metres only (real data: exactly 0)."""
     check_physics_limit_specs(f)
@@ -395,6 +403,10 @@ def physical_validity_fn(f, trajs) -> tuple[Callable[[TensorDictBase], torch.Ten
             f.max_contactless_object_path, metaworld_contactless_object_path(trajs, reach),
             field="flow.max_contactless_object_path")
         checks.append(metaworld_contact_check(reach, limits["max_contactless_object_path"]))
+    if f.get("max_hand_step") is not None:
+        limits["max_hand_step"] = physics_limit(f.max_hand_step, metaworld_max_hand_step(trajs),
+                                                field="flow.max_hand_step")
+        checks.append(metaworld_hand_step_check(limits["max_hand_step"]))
     if not checks:
         return None, limits
     return (lambda samples: torch.stack([check(samples) for check in checks]).all(0)), limits
@@ -403,7 +415,8 @@ def physical_validity_fn(f, trajs) -> tuple[Callable[[TensorDictBase], torch.Ten
 def metaworld_validity(generated: TensorDictBase, data: TensorDictBase) -> dict[str, float]:
     """Validity of the flow's accepted Meta-World samples (paper §4.3 scores it with an oracle
     dynamics model; Meta-World has none): the mean of the three physics proxies over the samples,
-    beside the dataset's own as the reference (metres; hand model and reach fitted on the dataset)."""
+    beside the dataset's own as the reference (metres; hand model and reach fitted on the dataset),
+    and the largest one-step hand move of any sample beside the dataset's largest."""
     hand_w = fit_metaworld_hand_model(data)
     try:
         reach = fit_metaworld_contact_reach(data)
@@ -414,6 +427,7 @@ def metaworld_validity(generated: TensorDictBase, data: TensorDictBase) -> dict[
         errors = metaworld_physics_errors(td, hand_weights=hand_w, reach=reach)
         for proxy in METAWORLD_PHYSICS_PROXIES:
             out[f"{proxy}_{name}"] = float(errors[proxy].mean()) if proxy in errors else float("nan")
+        out[f"max_hand_step_{name}"] = float(metaworld_max_hand_step(td).max()) if td.batch_size[0] else float("nan")
     return out
 
 
@@ -640,6 +654,9 @@ def final_table(metrics: dict) -> list[tuple[str, str]]:
         rows.append(("accepted samples: frame-stack / hand-model error / contactless object path, m (dataset)",
                      " / ".join(f"{_fmt(v[f'{k}_generated'])} ({_fmt(v[f'{k}_dataset'])})"
                                 for k in METAWORLD_PHYSICS_PROXIES)))
+        if "max_hand_step_generated" in v:  # runs before session 32 did not record it
+            rows.append(("accepted samples: largest one-step hand move, m (dataset)",
+                         f"{_fmt(v['max_hand_step_generated'])} ({_fmt(v['max_hand_step_dataset'])})"))
     if "top_k_success" in metrics["score_quality"]:
         sq = metrics["score_quality"]
         if oracle and "top_k_success" in fl:  # the flow started from the oracle's top-k, not s_psi's
@@ -699,8 +716,7 @@ def run(cfg: DictConfig) -> dict:
     if query.get("strategy", "random") not in QUERY_STRATEGIES:
         raise ValueError(f"labels.query.strategy={query.get('strategy')!r}: choose one of {list(QUERY_STRATEGIES)}")
     check_physics_limit_specs(cfg.flow)  # a malformed limit fails now, not after the diffuser's training
-    for key, what in (("max_frame_stack_error", "stacked previous frame"), ("max_hand_model_error", "mocap hand"),
-                      ("max_contactless_object_path", "hand-object contact")):
+    for key, what in PHYSICS_LIMIT_KEYS.items():
         if cfg.flow.get(key) is not None and kind != "metaworld":
             raise ValueError(f"flow.{key} is a Meta-World check ({what}); "
                              f"env.name={cfg.env.name!r} is {kind}: leave it null")

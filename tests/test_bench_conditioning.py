@@ -112,16 +112,3 @@ def test_tracked_replay_summary_reads_its_results_files(tmp_path):
     rows = bench.summarize([path]).splitlines()
     assert rows[2] == ("| cell_x | drawer-open-v3 s4 | held | 2 | 11 → 10 (1.4 cm) | 5 → 6 (2.0 cm; 50%) | "
                        "11 → 13 / **10 → 12** | 42 → 42 / **40 → 41** |")
-
-
-def test_hand_paths_steps_count_only_consecutive_valid_steps():
-    """bench/hand_paths.py: per-step hand displacement, masked where either end is padding."""
-    bench = load_script(ROOT / "bench" / "hand_paths.py", "bench_hand_paths")
-    obs = torch.zeros(1, 4, 39)
-    obs[0, :, 0] = torch.tensor([0.0, 0.003, 0.007, 0.5])  # the last step is padding
-    from tensordict import TensorDict
-
-    td = TensorDict({"observation": obs, "mask": torch.tensor([[True, True, True, False]])}, [1, 4])
-    step, pair = bench.hand_steps(td)
-    assert pair.tolist() == [[True, True, False]]
-    assert step[pair].tolist() == pytest.approx([0.003, 0.004], abs=1e-7)

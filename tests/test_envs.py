@@ -241,3 +241,17 @@ def test_hand_model_and_contact_reach_on_real_steps():
     with pytest.raises(ValueError, match="39"):
         metaworld_hand_model_error(TensorDict({"observation": torch.zeros(1, 3, 11), "action": torch.zeros(1, 3, 4),
                                                "mask": torch.ones(1, 3, dtype=torch.bool)}, [1, 3]), w)
+
+
+def test_hand_steps_count_only_consecutive_valid_steps():
+    """metaworld_hand_steps (bench/hand_paths.py, flow.max_hand_step): per-step hand displacement, masked
+    where either end is padding, so a padded jump is neither a step nor a trajectory's largest."""
+    from torchrl_ftb.envs import metaworld_hand_steps, metaworld_max_hand_step
+
+    obs = torch.zeros(1, 4, 39)
+    obs[0, :, 0] = torch.tensor([0.0, 0.003, 0.007, 0.5])  # the last step is padding
+    td = TensorDict({"observation": obs, "mask": torch.tensor([[True, True, True, False]])}, [1, 4])
+    step, pair = metaworld_hand_steps(td)
+    assert pair.tolist() == [[True, True, False]]
+    assert step[pair].tolist() == pytest.approx([0.003, 0.004], abs=1e-7)
+    assert metaworld_max_hand_step(td).tolist() == pytest.approx([0.004], abs=1e-7)

@@ -204,6 +204,8 @@ def test_bad_config_is_a_clear_error(tmp_path):
         recipe.run(_cfg(tmp_path / "f", "flow.max_hand_model_error=0.01"))
     with pytest.raises(ValueError, match="max_contactless_object_path is a Meta-World check"):
         recipe.run(_cfg(tmp_path / "f", "flow.max_contactless_object_path=0.1"))
+    with pytest.raises(ValueError, match="max_hand_step is a Meta-World check"):
+        recipe.run(_cfg(tmp_path / "f", "flow.max_hand_step=1x"))
     with pytest.raises(ValueError, match="flow.max_hand_model_error='tight'"):
         recipe.run(_cfg(tmp_path / "f", "flow.max_hand_model_error=tight"))
     assert not (tmp_path / "f").exists()  # refused before anything is written
@@ -328,8 +330,9 @@ def test_physical_validity_checks_compose():
     samples["observation"][2, 1:, 18:36] = samples["observation"][2, :-1, 0:18]
     samples["observation"][3, :, 4] += torch.arange(6) * 0.05  # the object slides away on its own
     samples["observation"][3, 1:, 22] = samples["observation"][3, :-1, 4]
-    cfg = lambda stack, hand, contact: OmegaConf.create(  # noqa: E731
-        {"max_frame_stack_error": stack, "max_hand_model_error": hand, "max_contactless_object_path": contact})
+    cfg = lambda stack, hand, contact, step=None: OmegaConf.create(  # noqa: E731
+        {"max_frame_stack_error": stack, "max_hand_model_error": hand, "max_contactless_object_path": contact,
+         "max_hand_step": step})
     check = lambda *limits: recipe.physical_validity_fn(cfg(*limits), data)[0](samples).tolist()  # noqa: E731
     assert recipe.physical_validity_fn(cfg(None, None, None), data) == (None, {})
     assert check(0.02, None, None) == [True, False, True, True]
@@ -337,6 +340,7 @@ def test_physical_validity_checks_compose():
     assert hand[0] and hand[1] and not hand[2]
     assert check(None, None, 0.01) == [True, True, True, False]
     assert check(0.02, 0.005, 0.01) == [True, False, False, False]
+    assert check(None, None, None, "1x") == [True, True, False, True]  # only the 5 cm jump outruns the data's hand
     # relative limits: a multiple of the proxy's largest value on the dataset's own trajectories
     fn, limits = recipe.physical_validity_fn(cfg(0.02, "1x", "2x"), data)
     assert limits["max_frame_stack_error"] == 0.02
@@ -348,11 +352,14 @@ def test_physical_validity_checks_compose():
         recipe.physical_validity_fn(cfg("2x", None, None), data)
     with pytest.raises(ValueError, match="max_hand_model_error='loose'.*'<factor>x'"):
         recipe.physical_validity_fn(cfg(None, "loose", None), data)
+    with pytest.raises(ValueError, match="max_hand_step='fast'.*'<factor>x'"):
+        recipe.physical_validity_fn(cfg(None, None, None, "fast"), data)
     # the recipe's validity analysis: the same proxies' means over the accepted samples, the dataset beside them
     v = recipe.metaworld_validity(samples, data)
     assert v["frame_stack_error_dataset"] == 0 and v["frame_stack_error_generated"] > 0
     assert v["hand_model_error_generated"] > 10 * v["hand_model_error_dataset"]
     assert v["contactless_object_path_dataset"] < 0.01 < 0.04 < v["contactless_object_path_generated"]
+    assert v["max_hand_step_dataset"] < 0.02 < 0.05 < v["max_hand_step_generated"]
     rows = dict(recipe.final_table({"env": "x", "preset": "cpu", "teacher": "return", "wall_time_s": 1.0,
                                     "eval": {"return_mean": 0.0, "return_std": 0.0, "length_mean": 1.0},
                                     "flow": {"score_mean_before": 0.0, "score_mean_after": 0.0,
@@ -365,6 +372,33 @@ def test_physical_validity_checks_compose():
     v = recipe.metaworld_validity(samples, still)
     assert v["contactless_object_path_generated"] != v["contactless_object_path_generated"]  # NaN
     assert v["hand_model_error_generated"] > 0
+
+
+
+def test_hand_step_check_catches_a_seam_the_mean_hand_model_error_hides():
+    """A sample held at a real start that jumps 3 cm at the seam and then moves like the data: the mean
+    hand-model residual over 200 steps stays under 1 mm, so flow.max_hand_model_error passes it;
+    flow.max_hand_step="1x" (the data's largest step, <= 1.8 cm here) rejects it and keeps the real paths."""
+    recipe = _recipe()
+    g = torch.Generator().manual_seed(1)
+    h = 200
+    act = torch.rand(3, h, 4, generator=g) * 2 - 1
+    obs = torch.zeros(3, h, 39)
+    for t in range(1, h):
+        obs[:, t, 0:3] = obs[:, t - 1, 0:3] + act[:, t - 1, :3] / 100
+    obs[..., 4:7] = 1.0  # an object far away that never moves
+    obs[:, 1:, 18:36] = obs[:, :-1, 0:18]
+    data = TensorDict({"observation": obs, "action": act, "mask": torch.ones(3, h, dtype=torch.bool)}, [3, h])
+    seam = data.clone()
+    seam["observation"][0, 1:, 0:3] += torch.tensor([0.03, 0.0, 0.0])  # the seam: step 0 -> 1 jumps 3 cm
+    seam["observation"][0, 1:, 18:36] = seam["observation"][0, :-1, 0:18]
+    cfg = OmegaConf.create({"max_hand_model_error": 0.001, "max_hand_step": None})
+    assert recipe.physical_validity_fn(cfg, data)[0](seam).tolist() == [True, True, True]
+    cfg.max_hand_step = "1x"
+    fn, limits = recipe.physical_validity_fn(cfg, data)
+    assert limits["max_hand_step"] < 0.018
+    assert fn(seam).tolist() == [False, True, True]
+    assert fn(data).tolist() == [True, True, True]
 
 
 

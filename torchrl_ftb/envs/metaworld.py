@@ -49,6 +49,9 @@ __all__ = [
     "fit_metaworld_contact_reach",
     "metaworld_contactless_object_path",
     "metaworld_contact_check",
+    "metaworld_hand_steps",
+    "metaworld_max_hand_step",
+    "metaworld_hand_step_check",
     "METAWORLD_PHYSICS_PROXIES",
     "metaworld_physics_errors",
     "physics_limit",
@@ -765,6 +768,68 @@ def metaworld_contact_check(reach: float, max_path: float) -> Callable[[TensorDi
 
     def check(trajectories: TensorDictBase) -> torch.Tensor:
         return metaworld_contactless_object_path(trajectories, reach) <= max_path
+
+    return check
+
+
+def metaworld_hand_steps(trajectories: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-step hand displacement of Meta-World trajectories: ``[N, H - 1]`` metres
+    (``|obs[t + 1, 0:3] - obs[t, 0:3]|``, 0 off the mask) and the ``[N, H - 1]`` mask of the pairs of
+    consecutive valid steps.
+
+    Example:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> obs = torch.zeros(1, 3, 39)
+        >>> obs[0, 1, 0], obs[0, 2, 0] = 0.004, 0.034  # 4 mm, then a 30 mm jump
+        >>> td = TensorDict({"observation": obs, "mask": torch.ones(1, 3, dtype=torch.bool)}, [1, 3])
+        >>> [round(x, 3) for x in metaworld_hand_steps(td)[0][0].tolist()]
+        [0.004, 0.03]
+    """
+    obs, pair = _metaworld_steps(trajectories, "Meta-World hand step")
+    obs = obs.double()
+    return (obs[:, 1:, 0:3] - obs[:, :-1, 0:3]).norm(dim=-1) * pair, pair
+
+
+def metaworld_max_hand_step(trajectories: TensorDictBase) -> torch.Tensor:
+    """``[N]`` the largest one-step hand displacement of each trajectory, in metres (0 with < 2 valid steps).
+
+    The hand-model check (:func:`metaworld_hand_model_error`) bounds the *mean* one-step residual, so
+    one jump hides in a long plausible path. A sample held at a real start
+    (``inpaint_start``) can jump at the seam between the start and what the diffuser made of the rest:
+    BENCHMARKS #5 measured a median 27 mm first step where the data's largest step anywhere is 47 mm
+    and its median 4 mm. :func:`metaworld_hand_step_check` rejects steps beyond what the data ever does.
+
+    Example:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> obs = torch.zeros(2, 3, 39)
+        >>> obs[1, 1:, 0] = 0.06  # the second hand jumps 6 cm once
+        >>> td = TensorDict({"observation": obs, "mask": torch.ones(2, 3, dtype=torch.bool)}, [2, 3])
+        >>> [round(x, 3) for x in metaworld_max_hand_step(td).tolist()]
+        [0.0, 0.06]
+    """
+    return metaworld_hand_steps(trajectories)[0].amax(-1).float()
+
+
+def metaworld_hand_step_check(max_step: float) -> Callable[[TensorDictBase], torch.Tensor]:
+    """A flow validity check: ``[N]`` True where no step moves the hand more than ``max_step`` metres
+    (:func:`metaworld_max_hand_step`; calibrate it on the dataset with :func:`physics_limit`'s ``"1x"``).
+
+    Example:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> obs = torch.zeros(2, 3, 39)
+        >>> obs[1, 1:, 0] = 0.06
+        >>> td = TensorDict({"observation": obs, "mask": torch.ones(2, 3, dtype=torch.bool)}, [2, 3])
+        >>> metaworld_hand_step_check(0.05)(td).tolist()
+        [True, False]
+    """
+    if not max_step >= 0:
+        raise ValueError(f"metaworld_hand_step_check: max_step must be >= 0 metres, got {max_step}")
+
+    def check(trajectories: TensorDictBase) -> torch.Tensor:
+        return metaworld_max_hand_step(trajectories) <= max_step
 
     return check
 
