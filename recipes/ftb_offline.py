@@ -78,6 +78,7 @@ from torchrl_ftb.envs import (
 )
 from torchrl_ftb.flow import FlowToBetter, true_return_score
 from torchrl_ftb.policy import (
+    PathTracker,
     evaluate_policy,
     fit_path_tracker,
     load_bc_checkpoint,
@@ -106,7 +107,7 @@ STAGES = ("dataset", "labels", "score_model", "blocks", "diffuser", "flow", "bc"
 # config entries that may change between a killed run and its resume
 # (analysis: recomputed at every run's end, never checkpointed)
 RESUME_FREE_KEYS = ("resume", "overwrite", "redo_from", "stop_after", "progress", "logger", "device", "run_dir",
-                    "hydra", "analysis")
+                    "hydra", "analysis", "tracker")
 #: entries of another stage's section that only a later stage reads (free when that one is redone):
 #: the diffuser's sampling settings are used by the flow only
 STAGE_OWNED_KEYS = {"flow": (("diffuser", "sampler"), ("diffuser", "sample_steps"), ("diffuser", "guidance"),
@@ -131,15 +132,22 @@ _ADDED_OPTION_NOOPS = {"score_model.num_members": 1, "flow.ensemble_rule": "mean
                        "diffuser.strength": 1.0}
 
 
+#: options removed since runs were saved (a saved config may still hold them): session 31's two tracker_steps,
+#: now the one ``tracker.steps``
+_REMOVED_OPTIONS = ("bc.tracker_steps",)
+
+
 def _diff_keys(a: Any, b: Any, prefix: str = "") -> list[str]:
     """Differences ``old -> new`` between config ``a`` (new) and ``b`` (saved); a key the saved
     config lacks matches an empty new value or its ``_ADDED_OPTION_NOOPS`` entry (an option
-    added later, left at its no-op default)."""
+    added later, left at its no-op default); a saved key in ``_REMOVED_OPTIONS`` is ignored."""
     if isinstance(a, dict) and isinstance(b, dict):
         out = []
         for k in sorted(set(a) | set(b), key=str):
             out += _diff_keys(a.get(k, "<missing>"), b.get(k, "<missing>"), f"{prefix}{k}.")
         return out
+    if a == "<missing>" and prefix[:-1] in _REMOVED_OPTIONS:
+        return []
     if b == "<missing>" and (a is None or a is False or a == {} or a == []
                              or _ADDED_OPTION_NOOPS.get(prefix[:-1], "<none>") == a):
         return []
@@ -484,20 +492,44 @@ def stage_flow(cfg, run: RunDir, trajs, scores, block_ids, sampler, model, true_
         "trajectories": res.trajectories, "original": res.original, "generated": res.generated}
 
 
-def relabel_generated(cfg, improved: TensorDictBase, generated: torch.Tensor, trajs: TensorDictBase) -> TensorDictBase:
-    """``bc.relabel_actions``: the final set with its generated trajectories' actions replaced by those a
-    goal-conditioned inverse-dynamics tracker fitted on the dataset gives for their own states
-    (:meth:`torchrl_ftb.policy.PathTracker.relabel`; ``bc.tracker_steps`` Adam steps, seeded by ``seed``).
-    Off (the paper's): the diffuser's own actions."""
+def path_tracker(cfg: DictConfig, run: RunDir, trajs: TensorDictBase, *, progress: bool) -> PathTracker:
+    """The goal-conditioned inverse-dynamics tracker that ``bc.relabel_actions`` and ``analysis.tracked`` share
+    (:func:`torchrl_ftb.policy.fit_path_tracker` on the dataset, ``tracker.steps`` Adam steps, seeded by
+    ``seed``). Fitted once per run: saved to ``checkpoints/tracker.pt`` and reused while its steps and seed
+    match (a run whose config changed them refits it)."""
+    steps = int(cfg.get("tracker", {}).get("steps", 4000))
+    if steps < 1:
+        raise ValueError(f"tracker.steps={steps}: must be >= 1")
+    path, key = run.path / "checkpoints" / "tracker.pt", {"steps": steps, "seed": int(cfg.seed)}
+    if path.is_file():
+        ckpt = _load_ckpt(path, "torchrl_ftb.path_tracker")
+        if {k: ckpt.get(k) for k in key} == key:
+            state = ckpt.get("state_dict") or {}
+            tracker = PathTracker(int(trajs["observation"].shape[-1]), int(trajs["action"].shape[-1]),
+                                  hidden=int(ckpt.get("hidden", 0)), dims=tuple(ckpt.get("dims", ())))
+            try:
+                tracker.load_state_dict(state)
+            except RuntimeError as err:
+                raise ValueError(f"{path}: the tracker does not fit this dataset ({err}); delete the file to refit")
+            return tracker
+    tracker = fit_path_tracker(trajs, steps=steps, seed=int(cfg.seed), progress=progress)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_torch_save({"kind": "torchrl_ftb.path_tracker", **key, "hidden": int(tracker.net[0].out_features),
+                       "dims": list(tracker.dims), "state_dict": tracker.state_dict()}, path)
+    return tracker
+
+
+def relabel_generated(cfg, run: RunDir, improved: TensorDictBase, generated: torch.Tensor,
+                      trajs: TensorDictBase) -> TensorDictBase:
+    """``bc.relabel_actions``: the final set with its generated trajectories' actions replaced by those the
+    run's tracker (:func:`path_tracker`) gives for their own states
+    (:meth:`torchrl_ftb.policy.PathTracker.relabel`). Off (the paper's): the diffuser's own actions."""
     value = cfg.bc.get("relabel_actions", False)
     if not isinstance(value, bool):
         raise ValueError(f"bc.relabel_actions={value!r}: must be true or false")
     if not value or not bool(torch.as_tensor(generated).any()):
         return improved
-    steps = int(cfg.bc.get("tracker_steps", 4000))
-    if steps < 1:
-        raise ValueError(f"bc.tracker_steps={steps}: must be >= 1")
-    tracker = fit_path_tracker(trajs, steps=steps, seed=int(cfg.seed), progress=bool(cfg.progress))
+    tracker = path_tracker(cfg, run, trajs, progress=bool(cfg.progress))
     return tracker.relabel(improved, torch.as_tensor(generated).bool().cpu())
 
 
@@ -555,8 +587,7 @@ def tracked_analysis(cfg: DictConfig, run: RunDir, flow: dict, trajs: TensorDict
     """``analysis.tracked``: the flow's improvement with every state path tracked in closed loop (generated
     Meta-World data only, else None; off by default).
 
-    Fits a goal-conditioned inverse-dynamics tracker on the dataset (``analysis.tracker_steps`` Adam steps,
-    seeded by ``seed``) and tracks the original top-k and the final set's generated trajectories in the
+    Tracks, with the run's inverse-dynamics tracker (:func:`path_tracker`), the original top-k and the final set's generated trajectories in the
     simulator (:func:`torchrl_ftb.analysis.tracked_improvement`); writes the per-sample numbers to
     ``tracked.json`` and returns the summary.
     """
@@ -565,16 +596,14 @@ def tracked_analysis(cfg: DictConfig, run: RunDir, flow: dict, trajs: TensorDict
         return None
     if meta.get("domain") != "metaworld" or "per_trajectory" not in meta:
         return None  # no goals and starts to track from (toy, locomotion, D4RL/Minari files)
-    steps = int(analysis.get("tracker_steps", 4000))
-    if steps < 1:
-        raise ValueError(f"analysis.tracker_steps={steps}: must be >= 1")
     horizon = _optional_int(cfg.flow.get("true_return_horizon")) or int(cfg.env.max_episode_steps)
-    tracker = fit_path_tracker(trajs, steps=steps, seed=int(cfg.seed), progress=progress)
+    tracker = path_tracker(cfg, run, trajs, progress=progress)
     out = tracked_improvement(flow["trajectories"], flow["original"], torch.as_tensor(flow["source_step"]) > 0,
                               trajs, meta, task=str(cfg.env.name), horizon=horizon, tracker=tracker,
                               original_rows=flow.get("original_indices"), progress=progress)
     samples = out.pop("samples")
-    write_json(run.path / "tracked.json", {**out, "tracker_steps": steps, "samples": samples})
+    write_json(run.path / "tracked.json", {**out, "tracker_steps": int(cfg.get("tracker", {}).get("steps", 4000)),
+                                           "samples": samples})
     return out
 
 
@@ -852,7 +881,7 @@ def run(cfg: DictConfig) -> dict:
     t0 = time.perf_counter()
     improved = flow["trajectories"]
     if not run_dir.done("bc"):
-        improved = relabel_generated(cfg, improved, torch.as_tensor(flow["source_step"]) > 0, trajs)
+        improved = relabel_generated(cfg, run_dir, improved, torch.as_tensor(flow["source_step"]) > 0, trajs)
     actor, bc_summary = stage_bc(cfg, run_dir, improved, device, logger)
     timed("bc", t0)
     partial_metrics["bc"] = bc_summary

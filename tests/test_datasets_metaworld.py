@@ -338,7 +338,7 @@ def test_tracked_replay_reads_both_sides_through_the_same_tracker(tiny_dataset, 
     flow = {"trajectories": final, "original": original, "source_step": torch.tensor([1, 1, 0, 0]),
             "original_indices": torch.tensor([1, 3, 0, 2])}
     assert recipe.tracked_analysis(cfg, run, flow, td, meta, progress=False) is None  # off by default
-    on = OmegaConf.merge(cfg, {"analysis": {"tracked": True, "tracker_steps": 50}})
+    on = OmegaConf.merge(cfg, {"analysis": {"tracked": True}, "tracker": {"steps": 50}})
     ours = recipe.tracked_analysis(on, run, flow, td, meta, progress=False)
     assert ours["fidelity"] == out["fidelity"] and ours["tracked"] == out["tracked"] and "samples" not in ours
     assert len(json.loads((tmp_path / "tracked.json").read_text())["samples"]) == 2
@@ -350,8 +350,8 @@ def test_tracked_replay_reads_both_sides_through_the_same_tracker(tiny_dataset, 
     assert table["true return top-k tracked in closed loop (stop rule, 150 steps): mean / max before -> after"]
     assert "generated in final set, tracked: return claimed -> tracked (hand off its path, m, median)" in table
     assert recipe.tracked_analysis(on, run, flow, td, {"domain": "toy"}, progress=False) is None
-    with pytest.raises(ValueError, match="analysis.tracker_steps=0"):
-        recipe.tracked_analysis(OmegaConf.merge(on, {"analysis": {"tracker_steps": 0}}), run, flow, td, meta,
+    with pytest.raises(ValueError, match="tracker.steps=0"):
+        recipe.tracked_analysis(OmegaConf.merge(on, {"tracker": {"steps": 0}}), run, flow, td, meta,
                                 progress=False)
     tracker = fit_path_tracker(td, steps=5, hidden=8)
     with pytest.raises(ValueError, match="not a generated Meta-World one"):

@@ -448,3 +448,7 @@ def test_options_added_later_resume_old_run_directories_at_their_no_op_defaults(
     assert recipe._diff_keys(new, old) == []
     new["diffuser"]["strength"] = 0.5
     assert recipe._diff_keys(new, old) == ["diffuser.strength: '<missing>' -> 0.5"]
+    # an option removed since (session 31's bc.tracker_steps, now tracker.steps) resumes; another lost key does not
+    old_s31, new_s32 = {"bc": {"steps": 5, "tracker_steps": 4000}}, {"bc": {"steps": 5}}
+    assert recipe._diff_keys(new_s32, old_s31) == []
+    assert recipe._diff_keys({"bc": {}}, old_s31) == ["bc.steps: 5 -> '<missing>'"]

@@ -78,7 +78,8 @@ def test_relabel_changes_only_the_chosen_rows_valid_steps():
         tracker.relabel(data, torch.ones(3, dtype=torch.bool))
 
 
-def test_recipe_relabel_generated_is_off_by_default_and_checks_its_options():
+def test_recipe_relabel_generated_is_off_by_default_and_checks_its_options(tmp_path):
+    import types
     from pathlib import Path
 
     from omegaconf import OmegaConf
@@ -87,17 +88,48 @@ def test_recipe_relabel_generated_is_off_by_default_and_checks_its_options():
 
     recipe = load_script(Path(__file__).resolve().parents[1] / "recipes" / "ftb_offline.py", "recipe_relabel")
     data = _mocap_like(n=4, h=6)
-    cfg = OmegaConf.create({"seed": 0, "progress": False, "bc": {}})
+    run = types.SimpleNamespace(path=tmp_path)
+    cfg = OmegaConf.create({"seed": 0, "progress": False, "bc": {}, "tracker": {"steps": 20}})
     generated = torch.tensor([True, False, False, False])
-    assert recipe.relabel_generated(cfg, data, generated, data) is data  # off: the diffuser's actions
-    on = OmegaConf.merge(cfg, {"bc": {"relabel_actions": True, "tracker_steps": 20}})
-    out = recipe.relabel_generated(on, data, generated, data)
+    assert recipe.relabel_generated(cfg, run, data, generated, data) is data  # off: the diffuser's actions
+    assert not (tmp_path / "checkpoints" / "tracker.pt").exists()  # and no tracker fitted
+    on = OmegaConf.merge(cfg, {"bc": {"relabel_actions": True}})
+    out = recipe.relabel_generated(on, run, data, generated, data)
     assert torch.equal(out["action"][1:], data["action"][1:]) and not torch.equal(out["action"][0], data["action"][0])
-    assert recipe.relabel_generated(on, data, torch.zeros(4, dtype=torch.bool), data) is data  # nothing generated
+    assert recipe.relabel_generated(on, run, data, torch.zeros(4, dtype=torch.bool), data) is data  # nothing generated
     with pytest.raises(ValueError, match="bc.relabel_actions='yes'"):
-        recipe.relabel_generated(OmegaConf.merge(cfg, {"bc": {"relabel_actions": "yes"}}), data, generated, data)
-    with pytest.raises(ValueError, match="bc.tracker_steps=0"):
-        recipe.relabel_generated(OmegaConf.merge(on, {"bc": {"tracker_steps": 0}}), data, generated, data)
+        recipe.relabel_generated(OmegaConf.merge(cfg, {"bc": {"relabel_actions": "yes"}}), run, data, generated, data)
+    with pytest.raises(ValueError, match="tracker.steps=0"):
+        recipe.relabel_generated(OmegaConf.merge(on, {"tracker": {"steps": 0}}), run, data, generated, data)
+
+
+def test_recipe_fits_one_tracker_per_run_and_refits_when_its_steps_change(tmp_path, monkeypatch):
+    """bc.relabel_actions and analysis.tracked share one fit (checkpoints/tracker.pt, loaded with
+    weights_only=True); the loaded tracker acts as the fitted one; tracker.steps changed on resume refits;
+    a foreign file there is a clear error."""
+    import types
+    from pathlib import Path
+
+    from omegaconf import OmegaConf
+
+    from torchrl_ftb.testing import load_script
+
+    recipe = load_script(Path(__file__).resolve().parents[1] / "recipes" / "ftb_offline.py", "recipe_tracker_ckpt")
+    fits = []
+    real_fit = recipe.fit_path_tracker
+    monkeypatch.setattr(recipe, "fit_path_tracker", lambda *a, **k: fits.append(k["steps"]) or real_fit(*a, **k))
+    data, run = _mocap_like(n=4, h=6), types.SimpleNamespace(path=tmp_path)
+    cfg = OmegaConf.create({"seed": 0, "tracker": {"steps": 20}})
+    first = recipe.path_tracker(cfg, run, data, progress=False)
+    again = recipe.path_tracker(cfg, run, data, progress=False)
+    assert fits == [20]
+    x = torch.randn(3, 39)
+    assert torch.equal(first(x, x), again(x, x))
+    recipe.path_tracker(OmegaConf.merge(cfg, {"tracker": {"steps": 30}}), run, data, progress=False)
+    assert fits == [20, 30]
+    torch.save({"kind": "something else"}, tmp_path / "checkpoints" / "tracker.pt")
+    with pytest.raises(ValueError, match="tracker.pt: not a torchrl_ftb.path_tracker checkpoint"):
+        recipe.path_tracker(cfg, run, data, progress=False)
 
 
 def test_controller_acts_as_the_module_does():
