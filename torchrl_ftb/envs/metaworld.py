@@ -589,6 +589,18 @@ def metaworld_hand_model_error(trajectories: TensorDictBase, weights: torch.Tens
     return _mean_over_steps(err, pair, pooled=pooled).float()
 
 
+def _at_most(proxy: Callable[[TensorDictBase], torch.Tensor], limit: float, *, what: str,
+             name: str) -> Callable[[TensorDictBase], torch.Tensor]:
+    """A flow validity check from a ``[N]`` proxy: True where ``proxy(trajectories) <= limit`` (metres)."""
+    if not limit >= 0:
+        raise ValueError(f"{name}: {what} must be >= 0 metres, got {limit}")
+
+    def check(trajectories: TensorDictBase) -> torch.Tensor:
+        return proxy(trajectories) <= limit
+
+    return check
+
+
 def metaworld_frame_stack_check(max_error: float) -> Callable[[TensorDictBase], torch.Tensor]:
     """A flow validity check: ``[N]`` True where the mean frame-stack error is ``<= max_error`` m.
 
@@ -605,13 +617,7 @@ def metaworld_frame_stack_check(max_error: float) -> Callable[[TensorDictBase], 
         >>> metaworld_frame_stack_check(0.02)(td).tolist()
         [True, False]
     """
-    if not max_error >= 0:
-        raise ValueError(f"metaworld_frame_stack_check: max_error must be >= 0 metres, got {max_error}")
-
-    def check(trajectories: TensorDictBase) -> torch.Tensor:
-        return metaworld_frame_stack_error(trajectories) <= max_error
-
-    return check
+    return _at_most(metaworld_frame_stack_error, max_error, what="max_error", name="metaworld_frame_stack_check")
 
 
 def metaworld_hand_model_check(weights: torch.Tensor, max_error: float) -> Callable[[TensorDictBase], torch.Tensor]:
@@ -633,13 +639,8 @@ def metaworld_hand_model_check(weights: torch.Tensor, max_error: float) -> Calla
         >>> metaworld_hand_model_check(w, 0.01)(td).tolist()
         [True, False]
     """
-    if not max_error >= 0:
-        raise ValueError(f"metaworld_hand_model_check: max_error must be >= 0 metres, got {max_error}")
-
-    def check(trajectories: TensorDictBase) -> torch.Tensor:
-        return metaworld_hand_model_error(trajectories, weights) <= max_error
-
-    return check
+    return _at_most(lambda trajectories: metaworld_hand_model_error(trajectories, weights), max_error,
+                    what="max_error", name="metaworld_hand_model_check")
 
 
 def physics_limit(spec: float | str, real: torch.Tensor, *, field: str) -> float:
@@ -763,13 +764,10 @@ def metaworld_contact_check(reach: float, max_path: float) -> Callable[[TensorDi
         >>> metaworld_contact_check(reach=0.05, max_path=0.1)(td).tolist()
         [True, False]
     """
-    if not (reach >= 0 and max_path >= 0):
-        raise ValueError(f"metaworld_contact_check: reach and max_path must be >= 0 metres, got {reach}, {max_path}")
-
-    def check(trajectories: TensorDictBase) -> torch.Tensor:
-        return metaworld_contactless_object_path(trajectories, reach) <= max_path
-
-    return check
+    if not reach >= 0:
+        raise ValueError(f"metaworld_contact_check: reach must be >= 0 metres, got {reach}")
+    return _at_most(lambda trajectories: metaworld_contactless_object_path(trajectories, reach), max_path,
+                    what="max_path", name="metaworld_contact_check")
 
 
 def metaworld_hand_steps(trajectories: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
@@ -825,13 +823,7 @@ def metaworld_hand_step_check(max_step: float) -> Callable[[TensorDictBase], tor
         >>> metaworld_hand_step_check(0.05)(td).tolist()
         [True, False]
     """
-    if not max_step >= 0:
-        raise ValueError(f"metaworld_hand_step_check: max_step must be >= 0 metres, got {max_step}")
-
-    def check(trajectories: TensorDictBase) -> torch.Tensor:
-        return metaworld_max_hand_step(trajectories) <= max_step
-
-    return check
+    return _at_most(metaworld_max_hand_step, max_step, what="max_step", name="metaworld_hand_step_check")
 
 
 #: The names of the three dynamics proxies, in report order: the keys of
