@@ -43,7 +43,18 @@ def tracked(run: Path, *, horizon: int, tracker_steps: int, seed: int, progress:
 
 SUMMARY_HEADER = ("| run | task, seed | samples start | generated in final set | tracker on the top-k: recorded → tracked "
                   "mean (hand off path, median) | generated: claimed → tracked (hand off path, median; tracks that "
-                  "succeed) | mean: top-k → final, claimed / **tracked** | max: top-k → final, claimed / **tracked** |")
+                  "succeed) | mean: top-k → final, claimed / **tracked** | max: top-k → final, claimed / **tracked** | "
+                  "off path (of generated): max → tracked max on path |")
+
+
+def on_path(entry: dict) -> str:
+    """``"<off path> (of <generated>): <top-k max> → <final max without them>"``; ``—`` for files written before
+    the bench recorded it (session 32)."""
+    if "tracked_on_path" not in entry:
+        return "—"
+    t, g = entry["tracked_on_path"], entry["generated"]
+    return (f"{g['off_path']} (of {g['num_generated']}): {t['true_return_max_before']:.0f} → "
+            f"{t['true_return_max_after']:.0f}")
 
 
 def summarize(paths: list[Path]) -> str:
@@ -62,7 +73,7 @@ def summarize(paths: list[Path]) -> str:
                         f"{c['true_return_mean_before']:.0f} → {c['true_return_mean_after']:.0f} / "
                         f"**{t['true_return_mean_before']:.0f} → {t['true_return_mean_after']:.0f}** | "
                         f"{c['true_return_max_before']:.0f} → {c['true_return_max_after']:.0f} / "
-                        f"**{t['true_return_max_before']:.0f} → {t['true_return_max_after']:.0f}** |")
+                        f"**{t['true_return_max_before']:.0f} → {t['true_return_max_after']:.0f}** | {on_path(e)} |")
     return "\n".join(rows)
 
 

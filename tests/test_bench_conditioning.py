@@ -98,7 +98,8 @@ def test_open_loop_summary_reads_bench_files_and_recipe_cells(tmp_path):
 
 
 def test_tracked_replay_summary_reads_its_results_files(tmp_path):
-    """bench/tracked_replay.py --summarize: one Markdown row per run, claimed beside tracked."""
+    """bench/tracked_replay.py --summarize: one Markdown row per run, claimed beside tracked, and the max
+    without the generated paths the tracker left (off path) where the file records it."""
     bench = load_script(ROOT / "bench" / "tracked_replay.py", "bench_tracked_summary")
     summ = lambda a, b, c, d: {"true_return_mean_before": a, "true_return_mean_after": b,  # noqa: E731
                                "true_return_max_before": c, "true_return_max_after": d}
@@ -111,4 +112,7 @@ def test_tracked_replay_summary_reads_its_results_files(tmp_path):
     path.write_text(json.dumps({"runs": {"/r/cell_x/drawer-open-v3/seed4": entry}}))
     rows = bench.summarize([path]).splitlines()
     assert rows[2] == ("| cell_x | drawer-open-v3 s4 | held | 2 | 11 → 10 (1.4 cm) | 5 → 6 (2.0 cm; 50%) | "
-                       "11 → 13 / **10 → 12** | 42 → 42 / **40 → 41** |")
+                       "11 → 13 / **10 → 12** | 42 → 42 / **40 → 41** | — |")  # a file from before session 32
+    entry["generated"]["off_path"], entry["tracked_on_path"] = 1, summ(10, 11, 40, 40)
+    path.write_text(json.dumps({"runs": {"/r/cell_x/drawer-open-v3/seed4": entry}}))
+    assert bench.summarize([path]).splitlines()[2].endswith("/ **40 → 41** | 1 (of 2): 40 → 40 |")

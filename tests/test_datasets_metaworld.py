@@ -330,6 +330,8 @@ def test_tracked_replay_reads_both_sides_through_the_same_tracker(tiny_dataset, 
     assert out["fidelity"]["recorded_mean"] == pytest.approx(float(true_return(td, horizon=150)[[1, 3, 0, 2]].mean()))
     assert out["fidelity"]["recorded_success_rate"] == float(td["next", "success"].any(-2).double().mean()) and out["fidelity"]["hand_deviation_median"] >= 0
     assert out["inpaint_start"] is False and out["top_k"] == 4
+    # the twins are tracked as their originals: none is off path, so the on-path reading is the same
+    assert out["generated"]["off_path"] == 0 and out["tracked_on_path"] == out["tracked"]
     # the recipe's analysis.tracked (off by default): tracked.json and the report rows
     import types
 
@@ -357,6 +359,19 @@ def test_tracked_replay_reads_both_sides_through_the_same_tracker(tiny_dataset, 
     with pytest.raises(ValueError, match="not a generated Meta-World one"):
         tracked_improvement(final, original, torch.tensor([1, 1, 0, 0]) > 0, td, {"domain": "toy"},
                             task="button-press-v3", horizon=150, tracker=tracker)
+    # a generated path 1 m above the table: the tracker cannot follow it, so it is off path and left out of the
+    # on-path reading, whatever its tracked return
+    flown = final.clone()
+    flown["observation"][0, :, 2] += 1.0
+    flown["observation"][0, :, 20] += 1.0
+    off = tracked_improvement(flown, original, torch.tensor([1, 1, 0, 0]) > 0, td, meta, task="button-press-v3",
+                              horizon=150, tracker=tracker, original_rows=torch.tensor([1, 3, 0, 2]))
+    assert off["generated"]["off_path"] == 1
+    assert off["samples"][0]["hand_deviation"] > off["fidelity"]["hand_deviation_max"] >= off["samples"][1]["hand_deviation"]
+    on, all_ = off["tracked_on_path"], off["tracked"]
+    assert on["true_return_mean_before"] == all_["true_return_mean_before"]
+    assert 3 * on["true_return_mean_after"] == pytest.approx(4 * all_["true_return_mean_after"]
+                                                             - off["samples"][0]["tracked_stop_rule"])
     with pytest.raises(ValueError, match="final-set originals"):  # an original the top-k does not hold
         tracked_improvement(keep[[0, 2]], keep[[1, 3]], torch.tensor([True, False]), td, meta,
                             task="button-press-v3", horizon=150, tracker=tracker, original_rows=torch.tensor([1, 3]))
