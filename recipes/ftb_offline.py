@@ -112,8 +112,9 @@ RESUME_FREE_KEYS = ("resume", "overwrite", "redo_from", "stop_after", "progress"
 #: the diffuser's sampling settings are used by the flow only
 STAGE_OWNED_KEYS = {"flow": (("diffuser", "sampler"), ("diffuser", "sample_steps"), ("diffuser", "guidance"),
                               ("diffuser", "strength"), ("diffuser", "inpaint_start"))}
-#: what each stage leaves under ``checkpoints/`` (removed by ``redo_from``)
-STAGE_CHECKPOINTS = {"labels": ("labels",), "score_model": ("score_model.pt",), "blocks": ("blocks.pt",),
+#: what each stage leaves under ``checkpoints/`` (removed by ``redo_from``); the path tracker depends on the
+#: dataset only (:func:`path_tracker`)
+STAGE_CHECKPOINTS = {"dataset": ("tracker.pt",), "labels": ("labels",), "score_model": ("score_model.pt",), "blocks": ("blocks.pt",),
                      "diffuser": ("diffuser",), "flow": ("flow.pt",), "bc": ("bc.pt",)}
 
 

@@ -127,6 +127,13 @@ def test_recipe_fits_one_tracker_per_run_and_refits_when_its_steps_change(tmp_pa
     assert torch.equal(first(x, x), again(x, x))
     recipe.path_tracker(OmegaConf.merge(cfg, {"tracker": {"steps": 30}}), run, data, progress=False)
     assert fits == [20, 30]
+    # redo_from keeps the tracker unless the dataset itself is redone
+    for redo, kept in (("bc", True), ("dataset", False)):
+        recipe.RunDir(OmegaConf.create({"run_dir": str(tmp_path), "resume": True, "overwrite": False,
+                                        "redo_from": redo}))
+        assert (tmp_path / "checkpoints" / "tracker.pt").exists() is kept
+    recipe.path_tracker(cfg, run, data, progress=False)
+    assert fits == [20, 30, 20]
     torch.save({"kind": "something else"}, tmp_path / "checkpoints" / "tracker.pt")
     with pytest.raises(ValueError, match="tracker.pt: not a torchrl_ftb.path_tracker checkpoint"):
         recipe.path_tracker(cfg, run, data, progress=False)
