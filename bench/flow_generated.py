@@ -39,6 +39,7 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import Callable
 
 import torch
 from omegaconf import OmegaConf
@@ -165,6 +166,32 @@ def require_finished_runs(parser: argparse.ArgumentParser, run_dirs: list[Path])
         missing = [name for name in ("config.yaml", "checkpoints/flow.pt") if not (run / name).is_file()]
         if missing:
             parser.error(f"{run}: not a finished FTB run directory (no {' or '.join(missing)})")
+
+
+def runs_from_args(parser: argparse.ArgumentParser, summarize_fn: Callable[[list[Path]], str]) -> argparse.Namespace | None:
+    """Parse a bench over finished runs (``--run-dirs``, ``--summarize``): with ``--summarize`` print
+    ``summarize_fn(files)`` and return None; else require ``--run-dirs``, each a finished run directory."""
+    args = parser.parse_args()
+    if args.summarize:
+        print(summarize_fn(args.summarize))
+        return None
+    if not args.run_dirs:
+        parser.error("give --run-dirs (or --summarize)")
+    require_finished_runs(parser, args.run_dirs)
+    return args
+
+
+def measure_runs(run_dirs: list[Path], out: Path, config: dict, measure: Callable[[Path], dict],
+                 describe: Callable[[Path, dict], str]) -> dict:
+    """``measure(run)`` for each run directory, printing ``describe(run, entry)``; the results file (command,
+    config, commit, machine, ``runs``) is rewritten after every run, so a stopped job keeps what it finished."""
+    record = {**run_record(config={"run_dirs": [str(r) for r in run_dirs], **config}), "runs": {}}
+    for run in run_dirs:
+        entry = record["runs"][str(run)] = measure(run)
+        print(describe(run, entry))
+        write_json(out, record)
+    print(f"-> {out}")
+    return record
 
 
 def main() -> None:

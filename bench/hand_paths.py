@@ -23,13 +23,12 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
-from flow_generated import require_finished_runs  # noqa: E402
+from flow_generated import measure_runs, require_finished_runs  # noqa: E402
 from open_loop import load_flow  # noqa: E402
 
 from torchrl_ftb.analysis import episode_jobs, nearest_start  # noqa: E402
 from torchrl_ftb.datasets.metaworld import replay_metaworld_actions  # noqa: E402
 from torchrl_ftb.envs import metaworld_hand_steps  # noqa: E402
-from torchrl_ftb.provenance import run_record, write_json  # noqa: E402
 
 DRIFT_STEPS = (10, 25, 50, 100, 200)
 
@@ -72,12 +71,10 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "hand_paths.json")
     args = parser.parse_args()
     require_finished_runs(parser, args.run_dirs)
-    record = {**run_record(config={"run_dirs": [str(r) for r in args.run_dirs], "replays": args.replays}), "runs": {}}
-    for run in args.run_dirs:
-        e = record["runs"][str(run)] = hand_paths(run, replays=args.replays)
-        print(run, {k: v for k, v in e.items() if k != "replay_hand_off_path"}, e.get("replay_hand_off_path"))
-        write_json(args.out, record)
-    print(f"-> {args.out}")
+    measure_runs(args.run_dirs, args.out, {"replays": args.replays},
+                 lambda run: hand_paths(run, replays=args.replays),
+                 lambda run, e: f"{run} {({k: v for k, v in e.items() if k != 'replay_hand_off_path'})} "
+                                f"{e.get('replay_hand_off_path')}")
 
 
 if __name__ == "__main__":

@@ -30,10 +30,9 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
 from expert_headroom import load_metaworld_run  # noqa: E402
-from flow_generated import require_finished_runs  # noqa: E402
+from flow_generated import measure_runs, runs_from_args  # noqa: E402
 
 from torchrl_ftb.analysis import open_loop_improvement, summarize_samples  # noqa: E402
-from torchrl_ftb.provenance import run_record, write_json  # noqa: E402
 
 
 def load_flow(run: Path) -> tuple:
@@ -112,6 +111,18 @@ def summarize(paths: list[Path]) -> str:
     return "\n".join(rows)
 
 
+def describe(run: Path, entry: dict) -> str:
+    """The printed lines of one measured run: claimed vs replayed, per return definition."""
+    lines = []
+    for name, v in entry["improvement"].items():
+        c, r = v["claimed"], v["replayed"]
+        lines.append(f"{entry['env']} seed {entry['seed']} {name}: mean {c['true_return_mean_before']:.0f} -> "
+                     f"{c['true_return_mean_after']:.0f} claimed / {r['true_return_mean_after']:.0f} replayed; max "
+                     f"{c['true_return_max_before']:.0f} -> {c['true_return_max_after']:.0f} claimed / "
+                     f"{r['true_return_max_after']:.0f} replayed")
+    return "\n".join(lines)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--run-dirs", nargs="+", type=Path)
@@ -122,27 +133,12 @@ def main() -> None:
     parser.add_argument("--no-hold", action="store_true",
                         help="stop each replay after the sample's last action (default: the hand then holds still, "
                              "zero actions, until the stop rule or the time limit)")
-    args = parser.parse_args()
-    if args.summarize:
-        print(summarize(args.summarize))
+    args = runs_from_args(parser, summarize)
+    if args is None:
         return
-    if not args.run_dirs:
-        parser.error("give --run-dirs (or --summarize)")
-    require_finished_runs(parser, args.run_dirs)
-    record = {**run_record(config={"run_dirs": [str(r) for r in args.run_dirs], "horizon": args.horizon,
-                                   "hold": not args.no_hold}), "runs": {}}
-    for run in args.run_dirs:
-        entry = record["runs"][str(run)] = open_loop(run, horizon=args.horizon, progress=not args.no_progress,
-                                                     hold=not args.no_hold)
-        for name, v in entry["improvement"].items():
-            c, r = v["claimed"], v["replayed"]
-            print(f"{entry['env']} seed {entry['seed']} {name}: mean {c['true_return_mean_before']:.0f} -> "
-                  f"{c['true_return_mean_after']:.0f} claimed / {r['true_return_mean_after']:.0f} replayed; max "
-                  f"{c['true_return_max_before']:.0f} -> {c['true_return_max_after']:.0f} claimed / "
-                  f"{r['true_return_max_after']:.0f} replayed")
-        write_json(args.out, record)
-    print(f"-> {args.out}")
-
+    measure_runs(args.run_dirs, args.out, {"horizon": args.horizon, "hold": not args.no_hold},
+                 lambda run: open_loop(run, horizon=args.horizon, progress=not args.no_progress, hold=not args.no_hold),
+                 describe)
 
 if __name__ == "__main__":
     main()

@@ -23,12 +23,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
-from flow_generated import require_finished_runs  # noqa: E402
+from flow_generated import measure_runs, runs_from_args  # noqa: E402
 from open_loop import load_flow  # noqa: E402
 
 from torchrl_ftb.analysis import tracked_improvement  # noqa: E402
 from torchrl_ftb.policy import fit_path_tracker  # noqa: E402
-from torchrl_ftb.provenance import run_record, write_json  # noqa: E402
 
 
 def tracked(run: Path, *, horizon: int, tracker_steps: int, seed: int, progress: bool) -> dict:
@@ -77,6 +76,15 @@ def summarize(paths: list[Path]) -> str:
     return "\n".join(rows)
 
 
+def describe(run: Path, e: dict) -> str:
+    """One printed line per measured run."""
+    t, c, f, g = e["tracked"], e["claimed"], e["fidelity"], e["generated"]
+    return (f"{e['env']} seed {e['seed']}: tracked mean {t['true_return_mean_before']:.0f} -> "
+            f"{t['true_return_mean_after']:.0f}, max {t['true_return_max_before']:.0f} -> {t['true_return_max_after']:.0f} "
+            f"(claimed mean {c['true_return_mean_before']:.0f} -> {c['true_return_mean_after']:.0f}); fidelity: "
+            f"top-k recorded {f['recorded_mean']:.0f} tracked {f['tracked_mean']:.0f}; {g['num_generated']} generated")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--run-dirs", nargs="+", type=Path)
@@ -86,26 +94,13 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0, help="the tracker's seed")
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "tracked_replay.json")
     parser.add_argument("--no-progress", action="store_true")
-    args = parser.parse_args()
-    if args.summarize:
-        print(summarize(args.summarize))
+    args = runs_from_args(parser, summarize)
+    if args is None:
         return
-    if not args.run_dirs:
-        parser.error("give --run-dirs (or --summarize)")
-    require_finished_runs(parser, args.run_dirs)
-    record = {**run_record(config={"run_dirs": [str(r) for r in args.run_dirs], "horizon": args.horizon,
-                                   "tracker_steps": args.tracker_steps, "seed": args.seed}), "runs": {}}
-    for run in args.run_dirs:
-        e = record["runs"][str(run)] = tracked(run, horizon=args.horizon, tracker_steps=args.tracker_steps,
-                                               seed=args.seed, progress=not args.no_progress)
-        t, c, f, g = e["tracked"], e["claimed"], e["fidelity"], e["generated"]
-        print(f"{e['env']} seed {e['seed']}: tracked mean {t['true_return_mean_before']:.0f} -> "
-              f"{t['true_return_mean_after']:.0f}, max {t['true_return_max_before']:.0f} -> {t['true_return_max_after']:.0f} "
-              f"(claimed mean {c['true_return_mean_before']:.0f} -> {c['true_return_mean_after']:.0f}); fidelity: "
-              f"top-k recorded {f['recorded_mean']:.0f} tracked {f['tracked_mean']:.0f}; {g['num_generated']} generated")
-        write_json(args.out, record)
-    print(f"-> {args.out}")
-
+    measure_runs(args.run_dirs, args.out, {"horizon": args.horizon, "tracker_steps": args.tracker_steps,
+                                           "seed": args.seed},
+                 lambda run: tracked(run, horizon=args.horizon, tracker_steps=args.tracker_steps, seed=args.seed,
+                                     progress=not args.no_progress), describe)
 
 if __name__ == "__main__":
     main()

@@ -116,3 +116,25 @@ def test_tracked_replay_summary_reads_its_results_files(tmp_path):
     entry["generated"]["off_path"], entry["tracked_on_path"] = 1, summ(10, 11, 40, 40)
     path.write_text(json.dumps({"runs": {"/r/cell_x/drawer-open-v3/seed4": entry}}))
     assert bench.summarize([path]).splitlines()[2].endswith("/ **40 → 41** | 1 (of 2): 40 → 40 |")
+
+
+def test_measure_runs_writes_after_every_run_with_its_provenance(tmp_path, capsys):
+    """bench/flow_generated.py's measure_runs (open_loop, tracked_replay, hand_paths): each run's entry is in the
+    results file as soon as it is measured, beside the command, config, commit and machine, so a job stopped
+    after its first run keeps that run."""
+    bench = load_script(ROOT / "bench" / "flow_generated.py", "bench_flow_generated_measure")
+    out = tmp_path / "r.json"
+
+    def measure(run):
+        if run.name == "b":
+            raise KeyboardInterrupt  # the job is stopped during its second run
+        return {"value": 1.5}
+
+    with pytest.raises(KeyboardInterrupt):
+        bench.measure_runs([tmp_path / "a", tmp_path / "b"], out, {"horizon": 500}, measure,
+                           lambda run, e: f"{run.name}: {e['value']}")
+    record = json.loads(out.read_text())
+    assert record["runs"] == {str(tmp_path / "a"): {"value": 1.5}}
+    assert record["config"] == {"run_dirs": [str(tmp_path / "a"), str(tmp_path / "b")], "horizon": 500}
+    assert {"command", "git_commit", "machine"} <= set(record)
+    assert "a: 1.5" in capsys.readouterr().out
