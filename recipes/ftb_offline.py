@@ -493,14 +493,20 @@ def stage_flow(cfg, run: RunDir, trajs, scores, block_ids, sampler, model, true_
         "trajectories": res.trajectories, "original": res.original, "generated": res.generated}
 
 
+def tracker_steps(cfg: DictConfig) -> int:
+    """``tracker.steps``: Adam steps fitting the run's path tracker (>= 1; default 4000)."""
+    steps = int(cfg.get("tracker", {}).get("steps", 4000))
+    if steps < 1:
+        raise ValueError(f"tracker.steps={steps}: must be >= 1")
+    return steps
+
+
 def path_tracker(cfg: DictConfig, run: RunDir, trajs: TensorDictBase, *, progress: bool) -> PathTracker:
     """The goal-conditioned inverse-dynamics tracker that ``bc.relabel_actions`` and ``analysis.tracked`` share
     (:func:`torchrl_ftb.policy.fit_path_tracker` on the dataset, ``tracker.steps`` Adam steps, seeded by
     ``seed``). Fitted once per run: saved to ``checkpoints/tracker.pt`` and reused while its steps and seed
     match (a run whose config changed them refits it)."""
-    steps = int(cfg.get("tracker", {}).get("steps", 4000))
-    if steps < 1:
-        raise ValueError(f"tracker.steps={steps}: must be >= 1")
+    steps = tracker_steps(cfg)
     path, key = run.path / "checkpoints" / "tracker.pt", {"steps": steps, "seed": int(cfg.seed)}
     if path.is_file():
         ckpt = _load_ckpt(path, "torchrl_ftb.path_tracker")
@@ -603,8 +609,7 @@ def tracked_analysis(cfg: DictConfig, run: RunDir, flow: dict, trajs: TensorDict
                               trajs, meta, task=str(cfg.env.name), horizon=horizon, tracker=tracker,
                               original_rows=flow.get("original_indices"), progress=progress)
     samples = out.pop("samples")
-    write_json(run.path / "tracked.json", {**out, "tracker_steps": int(cfg.get("tracker", {}).get("steps", 4000)),
-                                           "samples": samples})
+    write_json(run.path / "tracked.json", {**out, "tracker_steps": tracker_steps(cfg), "samples": samples})
     return out
 
 
@@ -763,6 +768,7 @@ def run(cfg: DictConfig) -> dict:
                              f"no termination flag: leave it null")
     sdedit_strength(cfg)  # a malformed strength fails now, not after the diffuser's training
     inpaint_start(cfg)
+    tracker_steps(cfg)
     if flow_filter(cfg) == "true_return" and not cfg.flow.true_reward:
         raise ValueError("flow.filter=true_return ranks and accepts by the ground-truth return: it needs "
                          "flow.true_reward=true")

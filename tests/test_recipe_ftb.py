@@ -208,6 +208,8 @@ def test_bad_config_is_a_clear_error(tmp_path):
         recipe.run(_cfg(tmp_path / "f", "flow.max_hand_step=1x"))
     with pytest.raises(ValueError, match="flow.max_hand_model_error='tight'"):
         recipe.run(_cfg(tmp_path / "f", "flow.max_hand_model_error=tight"))
+    with pytest.raises(ValueError, match="tracker.steps=0: must be >= 1"):  # before any training, not at BC
+        recipe.run(_cfg(tmp_path / "f", "tracker.steps=0"))
     assert not (tmp_path / "f").exists()  # refused before anything is written
     with pytest.raises(ValueError, match="score_model.horizon is the stop-rule fill"):
         recipe.run(_cfg(tmp_path / "h", "env.name=hopper", "score_model.horizon=1000"))
