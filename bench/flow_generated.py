@@ -210,46 +210,57 @@ def main() -> None:
                         help="the hand 'reaches' the object within the hand-object distance that holds this share of "
                              "the original top-k's object motion; generated trajectories that move the object beyond "
                              "reach further than any original does count as physically invalid")
-    args = parser.parse_args()
-    if args.summarize:
-        print(summary_table({path.stem: json.loads(path.read_text()) for path in args.summarize}))
+    args = runs_from_args(parser, lambda files: summary_table({path.stem: json.loads(path.read_text())
+                                                                for path in files}))
+    if args is None:
         return
-    if not args.run_dirs:
-        parser.error("--run-dirs or --summarize is required")
-    require_finished_runs(parser, args.run_dirs)
-    record = {**run_record(config={"run_dirs": [str(r) for r in args.run_dirs], "horizon": args.horizon,
-                                   "max_frame_stack_error": args.max_frame_stack_error,
-                                   "max_hand_model_error": args.max_hand_model_error,
-                                   "contact_quantile": args.contact_quantile}), "runs": {}}
-    for run in args.run_dirs:
-        cfg = OmegaConf.load(run / "config.yaml")
-        ckpt = torch.load(run / "checkpoints" / "flow.pt", weights_only=True)
-        final = TensorDict(ckpt["trajectories"]["data"], batch_size=ckpt["trajectories"]["batch_size"])
-        original = TensorDict(ckpt["original"]["data"], batch_size=ckpt["original"]["batch_size"])
-        generated = ckpt["source_step"] > 0
-        ref = physics_reference(original, contact_quantile=args.contact_quantile)
-        rows = generated_rows(ckpt, final, generated, ref)
-        invalid = physically_invalid(rows, max_frame_stack_error=args.max_frame_stack_error,
-                                     max_hand_model_error=args.max_hand_model_error,
-                                     max_contactless_object_path=ref.get("contactless_object_path_original_max_m",
-                                                                         float("inf")))
-        entry = record["runs"][str(run)] = {
-            "env": str(cfg.env.name), "seed": int(cfg.seed), "teacher": str(cfg.labels.teacher),
-            "top_k": int(cfg.flow.top_k),
-            "observation_structure": bool(cfg.diffuser.get("observation_structure", False)),
-            **{k: v for k, v in ref.items() if k != "hand_weights"},
-            "generated_in_final_set": rows, "physically_invalid_in_final_set": int(invalid.sum())}
-        if args.horizon is not None:
-            entry["improvement"] = oracle_improvement(str(cfg.env.name), original, final, generated, invalid,
-                                                      horizon=args.horizon)
-            print("  " + "; ".join(f"{name}: mean {v['true_return_mean_before']:.0f} -> "
-                                   f"{v['true_return_mean_after']:.0f}, max {v['true_return_max_before']:.0f} -> "
-                                   f"{v['true_return_max_after']:.0f}" for name, v in entry["improvement"].items()))
-        print(f"{cfg.env.name} seed {cfg.seed}: " + "; ".join(
-            f"len {r['length']} return {r['true_return']:.0f} frame-stack {r['frame_stack_error_m']} "
-            f"hand model {r['hand_model_error_m']} contactless {r['contactless_object_path_m']}" for r in rows))
-        write_json(args.out, record)
-    print(f"-> {args.out}")
+    measure_runs(args.run_dirs, args.out,
+                 {"horizon": args.horizon, "max_frame_stack_error": args.max_frame_stack_error,
+                  "max_hand_model_error": args.max_hand_model_error, "contact_quantile": args.contact_quantile},
+                 lambda run: measure_run(run, horizon=args.horizon, max_frame_stack_error=args.max_frame_stack_error,
+                                         max_hand_model_error=args.max_hand_model_error,
+                                         contact_quantile=args.contact_quantile),
+                 describe_run)
+
+
+def measure_run(run: Path, *, horizon: int | None, max_frame_stack_error: float, max_hand_model_error: float,
+                contact_quantile: float) -> dict:
+    """One run's entry: the physics proxies of every generated trajectory in its final set and, with
+    ``horizon``, the oracle improvement (plain, filled, and with the physically invalid samples replaced)."""
+    cfg = OmegaConf.load(run / "config.yaml")
+    ckpt = torch.load(run / "checkpoints" / "flow.pt", weights_only=True)
+    final = TensorDict(ckpt["trajectories"]["data"], batch_size=ckpt["trajectories"]["batch_size"])
+    original = TensorDict(ckpt["original"]["data"], batch_size=ckpt["original"]["batch_size"])
+    generated = ckpt["source_step"] > 0
+    ref = physics_reference(original, contact_quantile=contact_quantile)
+    rows = generated_rows(ckpt, final, generated, ref)
+    invalid = physically_invalid(rows, max_frame_stack_error=max_frame_stack_error,
+                                 max_hand_model_error=max_hand_model_error,
+                                 max_contactless_object_path=ref.get("contactless_object_path_original_max_m",
+                                                                     float("inf")))
+    entry = {"env": str(cfg.env.name), "seed": int(cfg.seed), "teacher": str(cfg.labels.teacher),
+             "top_k": int(cfg.flow.top_k),
+             "observation_structure": bool(cfg.diffuser.get("observation_structure", False)),
+             **{k: v for k, v in ref.items() if k != "hand_weights"},
+             "generated_in_final_set": rows, "physically_invalid_in_final_set": int(invalid.sum())}
+    if horizon is not None:
+        entry["improvement"] = oracle_improvement(str(cfg.env.name), original, final, generated, invalid,
+                                                  horizon=horizon)
+    return entry
+
+
+def describe_run(run: Path, entry: dict) -> str:
+    """The printed line(s) of one measured run."""
+    lines = []
+    if "improvement" in entry:
+        lines.append("  " + "; ".join(f"{name}: mean {v['true_return_mean_before']:.0f} -> "
+                                      f"{v['true_return_mean_after']:.0f}, max {v['true_return_max_before']:.0f} -> "
+                                      f"{v['true_return_max_after']:.0f}" for name, v in entry["improvement"].items()))
+    lines.append(f"{entry['env']} seed {entry['seed']}: " + "; ".join(
+        f"len {r['length']} return {r['true_return']:.0f} frame-stack {r['frame_stack_error_m']} "
+        f"hand model {r['hand_model_error_m']} contactless {r['contactless_object_path_m']}"
+        for r in entry["generated_in_final_set"]))
+    return "\n".join(lines)
 
 
 if __name__ == "__main__":

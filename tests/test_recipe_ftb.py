@@ -111,18 +111,17 @@ def test_kill_during_diffuser_training_then_resume_end_to_end(tmp_path):
     assert redone["analysis"]["improvement"]["true_return_filled_mean_after"] == redone["flow"]["true_return_filled_mean_after"]
     assert (run_dir / "plots" / "true_return_filled_before_after.png").is_file()
     gen = load_script(ROOT / "bench" / "flow_generated.py", "bench_flow_generated")
+    entry = gen.measure_run(run_dir, horizon=32, max_frame_stack_error=0.02, max_hand_model_error=0.01,
+                            contact_quantile=0.99)
+    rows, imp = entry["generated_in_final_set"], entry["improvement"]
     flow_ckpt = torch.load(run_dir / "checkpoints" / "flow.pt", weights_only=True)
-    td = {k: TensorDict(flow_ckpt[k]["data"], batch_size=flow_ckpt[k]["batch_size"]) for k in ("original", "trajectories")}
-    src = flow_ckpt["source_step"] > 0
-    rows = [{"frame_stack_error_m": None, "hand_model_error_m": None, "contactless_object_path_m": None}] * int(src.sum())
-    invalid = gen.physically_invalid(rows, max_frame_stack_error=0.02, max_hand_model_error=0.01)
-    assert invalid.shape == (int(src.sum()),) and not bool(invalid.any())  # no Meta-World checks on the toy
-    imp = gen.oracle_improvement("toy", td["original"], td["trajectories"], src, invalid, horizon=32)
+    assert len(rows) == int((flow_ckpt["source_step"] > 0).sum()) and entry["physically_invalid_in_final_set"] == 0
+    assert all(r["frame_stack_error_m"] is None for r in rows)  # no Meta-World checks on the toy
     assert imp["filled_32_physically_checked"] == imp["filled_32"]
+    assert gen.describe_run(run_dir, entry).startswith("  plain: mean ")
     table = gen.summary_table({"cells": {
         "config": {"max_frame_stack_error": 0.02, "max_hand_model_error": 0.01},
-        "runs": {"r": {"env": "toy", "seed": 0, "generated_in_final_set": rows, "physically_invalid_in_final_set": 0,
-                       "improvement": imp}}}}).splitlines()
+        "runs": {"r": entry}}}).splitlines()
     assert len(table) == 3 and table[2].startswith("| cells | toy | 0 | raw |") and "(any: 0)" in table[2]
     physics = load_script(ROOT / "bench" / "sample_physics.py", "bench_sample_physics")
     with pytest.raises(ValueError, match="needs a Meta-World run"):  # clear refusal, before any sampling
