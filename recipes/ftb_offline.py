@@ -76,7 +76,7 @@ from torchrl_ftb.envs import (
     physics_limit,
     true_reward_fn,
 )
-from torchrl_ftb.flow import FlowToBetter, true_return_score
+from torchrl_ftb.flow import FlowToBetter, check_flow_options, true_return_score
 from torchrl_ftb.policy import (
     PathTracker,
     evaluate_policy,
@@ -448,6 +448,28 @@ def flow_filter(cfg: DictConfig) -> str:
     return value
 
 
+def flow_options(cfg: DictConfig) -> dict[str, Any]:
+    """``FlowToBetter``'s scalar options from ``cfg.flow`` (and ``blocks.num_blocks``): checked at start
+    (:func:`check_flow_options`), before any training, and passed to the flow stage."""
+    f = cfg.flow
+    return {"top_k": int(f.top_k), "threshold": float(f.threshold), "num_blocks": int(cfg.blocks.num_blocks),
+            "flow_steps": _optional_int(f.flow_steps), "max_flow_steps": _optional_int(f.max_flow_steps),
+            "min_flow_steps": int(f.min_flow_steps), "early_stop_fraction": float(f.early_stop_fraction),
+            "max_abs_z": float(f.max_abs_z), "action_tolerance": float(f.action_tolerance),
+            "min_length": _optional_int(f.min_length), "batch_size": int(f.batch_size),
+            "candidates": int(f.get("candidates", 1)), "ensemble_rule": str(f.get("ensemble_rule", "mean"))}
+
+
+def check_policy_options(cfg: DictConfig) -> None:
+    """BC's and the evaluation's numbers, checked at start (they are used after the diffuser's training)."""
+    for key, low, strict in (("bc.steps", 0, False), ("bc.batch_size", 1, False), ("bc.lr", 0, True),
+                             ("bc.weight_decay", 0, False), ("eval.num_episodes", 1, False),
+                             ("eval.num_envs", 1, False), ("eval.max_steps", 1, False)):
+        value = OmegaConf.select(cfg, key)
+        if value is None or not (value > low if strict else value >= low):
+            raise ValueError(f"{key}={value!r}: must be {'>' if strict else '>='} {low}")
+
+
 def stage_flow(cfg, run: RunDir, trajs, scores, block_ids, sampler, model, true_reward_fn, logger) -> dict:
     path = run.ckpt / "flow.pt"
     if run.done("flow"):
@@ -463,20 +485,12 @@ def stage_flow(cfg, run: RunDir, trajs, scores, block_ids, sampler, model, true_
                                   streak=_optional_int(f.get("true_return_streak")))
         scores = block_ids = None  # the flow ranks and blocks the dataset by the oracle itself
     flow = FlowToBetter(
-        sampler, model, top_k=int(f.top_k), threshold=float(f.threshold), num_blocks=int(cfg.blocks.num_blocks),
-        flow_steps=None if f.flow_steps is None else int(f.flow_steps),
-        max_flow_steps=None if f.max_flow_steps is None else int(f.max_flow_steps),
-        min_flow_steps=int(f.min_flow_steps), early_stop_fraction=float(f.early_stop_fraction),
-        max_abs_z=float(f.max_abs_z), action_tolerance=float(f.action_tolerance),
-        min_length=None if f.min_length is None else int(f.min_length),
-        true_reward_fn=true_reward_fn, batch_size=int(f.batch_size), seed=int(cfg.seed),
-        candidates=int(f.get("candidates", 1)),
+        sampler, model, **flow_options(cfg), true_reward_fn=true_reward_fn, seed=int(cfg.seed),
         true_return_horizon=None if true_reward_fn is None or f.get("true_return_horizon") is None
         else int(f.true_return_horizon),
         true_return_streak=None if true_reward_fn is None or f.get("true_return_streak") is None
         else int(f.true_return_streak),
-        ensemble_rule=str(f.get("ensemble_rule", "mean")), logger=logger,
-        validity_fn=validity_fn,
+        logger=logger, validity_fn=validity_fn,
         progress=bool(cfg.progress),
     )
     res = flow(trajs, scores=scores, block_ids=block_ids)
@@ -767,6 +781,12 @@ def run(cfg: DictConfig) -> dict:
                              f"env.name={cfg.env.name!r} episodes terminate (falls) and the diffuser's samples carry "
                              f"no termination flag: leave it null")
     sdedit_strength(cfg)  # a malformed strength fails now, not after the diffuser's training
+    try:  # the flow's numbers fail now, not after the diffuser's training
+        check_flow_options(**flow_options(cfg), num_members=1 if flow_filter(cfg) == "true_return"
+                           else int(cfg.score_model.get("num_members", 1)))
+    except ValueError as err:
+        raise ValueError(f"flow.* (or blocks.num_blocks): {err}") from None
+    check_policy_options(cfg)
     inpaint_start(cfg)
     tracker_steps(cfg)
     if flow_filter(cfg) == "true_return" and not cfg.flow.true_reward:
@@ -823,6 +843,8 @@ def run(cfg: DictConfig) -> dict:
                      obs_dim=obs_dim, action_dim=act_dim, path=meta.get("path"))
     elif run_dir.stages["dataset"].get("num_trajectories") != int(trajs.batch_size[0]):
         raise ValueError(f"{run_dir.stages_file}: the dataset changed since the run started")
+    if int(cfg.flow.top_k) > trajs.batch_size[0]:  # fails now, not at the flow stage
+        raise ValueError(f"flow.top_k={cfg.flow.top_k} exceeds the dataset's {trajs.batch_size[0]} trajectories")
     timed("dataset", t0)
     if (out := stopped("dataset")) is not None:
         return out

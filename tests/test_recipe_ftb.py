@@ -209,7 +209,21 @@ def test_bad_config_is_a_clear_error(tmp_path):
         recipe.run(_cfg(tmp_path / "f", "flow.max_hand_model_error=tight"))
     with pytest.raises(ValueError, match="tracker.steps=0: must be >= 1"):  # before any training, not at BC
         recipe.run(_cfg(tmp_path / "f", "tracker.steps=0"))
+    # the flow's, BC's and the evaluation's numbers: refused before any training, not at their stages
+    for override, message in (("flow.top_k=0", r"flow.\* \(or blocks.num_blocks\): FlowToBetter: top_k must be >= 1"),
+                              ("flow.threshold=0.9", "threshold σ must be >= 1"),
+                              ("flow.early_stop_fraction=1.5", r"early_stop_fraction must be in \[0, 1\]"),
+                              ("flow.candidates=0", "candidates must be >= 1"),
+                              ("flow.ensemble_rule=all", "needs a ScoreModel ensemble"),
+                              ("bc.batch_size=0", "bc.batch_size=0: must be >= 1"),
+                              ("bc.lr=0", "bc.lr=0: must be > 0"),
+                              ("eval.num_episodes=0", "eval.num_episodes=0: must be >= 1")):
+        with pytest.raises(ValueError, match=message):
+            recipe.run(_cfg(tmp_path / "f", override))
     assert not (tmp_path / "f").exists()  # refused before anything is written
+    with pytest.raises(ValueError, match="flow.top_k=1000 exceeds the dataset's"):  # once the dataset is loaded
+        recipe.run(_cfg(tmp_path / "k", "flow.top_k=1000"))
+    assert not (tmp_path / "k" / "checkpoints" / "labels").exists()
     with pytest.raises(ValueError, match="score_model.horizon is the stop-rule fill"):
         recipe.run(_cfg(tmp_path / "h", "env.name=hopper", "score_model.horizon=1000"))
     with pytest.raises(ValueError, match="flow.true_return_horizon is the stop-rule fill"):

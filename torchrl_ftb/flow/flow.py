@@ -74,7 +74,7 @@ from torchrl_ftb.preference import (
 )
 
 __all__ = [
-    "FlowToBetter", "FlowResult", "adaptive_flow_steps", "clip_actions", "default_min_length", "improves",
+    "FlowToBetter", "FlowResult", "adaptive_flow_steps", "check_flow_options", "clip_actions", "default_min_length", "improves",
     "masked_true_return", "masked_true_returns", "normalized_scores", "return_summary", "trajectory_validity",
     "true_return_score",
 ]
@@ -334,6 +334,57 @@ class FlowResult:
         return iter((self.trajectories, self.stats))
 
 
+def check_flow_options(*, top_k: int, threshold: float = 1.1, num_blocks: int | None = None,
+                       flow_steps: int | None = None, max_flow_steps: int | None = None, min_flow_steps: int = 1,
+                       early_stop_fraction: float = 0.05, max_abs_z: float = 30.0, min_length: int | None = None,
+                       action_tolerance: float = 0.5, candidates: int = 1, batch_size: int = 256,
+                       ensemble_rule: str = "mean", num_members: int = 1) -> None:
+    """Check :class:`FlowToBetter`'s scalar options (same names and defaults) without building it.
+
+    A recipe calls it before any training, so a bad flow option fails in seconds instead of after the
+    diffuser's training; :class:`FlowToBetter` calls it too. ``num_members``: the score model's
+    ensemble size (``ensemble_rule="all"`` needs at least 2).
+
+    Raises:
+        ValueError: naming the first option out of range.
+
+    Example:
+        >>> check_flow_options(top_k=100, threshold=1.1, num_blocks=5)
+        >>> check_flow_options(top_k=0)
+        Traceback (most recent call last):
+        ...
+        ValueError: FlowToBetter: top_k must be >= 1, got 0
+    """
+    if top_k < 1:
+        raise ValueError(f"FlowToBetter: top_k must be >= 1, got {top_k}")
+    if not threshold >= 1.0:
+        raise ValueError(f"FlowToBetter: threshold σ must be >= 1 (a ratio), got {threshold}")
+    if flow_steps is None and num_blocks is None:
+        raise ValueError("FlowToBetter: give num_blocks (adaptive flow steps) or a fixed flow_steps")
+    if num_blocks is not None and num_blocks < 1:
+        raise ValueError(f"FlowToBetter: num_blocks must be >= 1, got {num_blocks}")
+    if flow_steps is not None and flow_steps < 0:
+        raise ValueError(f"FlowToBetter: flow_steps must be >= 0, got {flow_steps}")
+    if min_flow_steps < 0 or (max_flow_steps is not None and max_flow_steps < min_flow_steps):
+        raise ValueError(f"FlowToBetter: need 0 <= min_flow_steps <= max_flow_steps, got {min_flow_steps}, {max_flow_steps}")
+    if not 0.0 <= early_stop_fraction <= 1.0:
+        raise ValueError(f"FlowToBetter: early_stop_fraction must be in [0, 1], got {early_stop_fraction}")
+    if not max_abs_z > 0:
+        raise ValueError(f"FlowToBetter: max_abs_z must be > 0, got {max_abs_z}")
+    if not action_tolerance >= 0:
+        raise ValueError(f"FlowToBetter: action_tolerance must be >= 0, got {action_tolerance}")
+    if min_length is not None and min_length < 1:
+        raise ValueError(f"FlowToBetter: min_length must be >= 1 (or None), got {min_length}")
+    if candidates < 1:
+        raise ValueError(f"FlowToBetter: candidates must be >= 1, got {candidates}")
+    if batch_size < 1:
+        raise ValueError(f"FlowToBetter: batch_size must be >= 1, got {batch_size}")
+    if ensemble_rule not in ("mean", "all"):
+        raise ValueError(f"FlowToBetter: ensemble_rule must be 'mean' or 'all', got {ensemble_rule!r}")
+    if ensemble_rule == "all" and num_members < 2:
+        raise ValueError("FlowToBetter: ensemble_rule='all' needs a ScoreModel ensemble (num_members >= 2)")
+
+
 class FlowToBetter(nn.Module):
     """Flow to better (Alg. 4) as a TorchRL component around a sampler and a score model.
 
@@ -415,30 +466,17 @@ class FlowToBetter(nn.Module):
         progress: bool = True,
     ) -> None:
         super().__init__()
-        if top_k < 1:
-            raise ValueError(f"FlowToBetter: top_k must be >= 1, got {top_k}")
-        if not threshold >= 1.0:
-            raise ValueError(f"FlowToBetter: threshold σ must be >= 1 (a ratio), got {threshold}")
-        if flow_steps is None and num_blocks is None:
-            raise ValueError("FlowToBetter: give num_blocks (adaptive flow steps) or a fixed flow_steps")
-        if flow_steps is not None and flow_steps < 0:
-            raise ValueError(f"FlowToBetter: flow_steps must be >= 0, got {flow_steps}")
-        if min_flow_steps < 0 or (max_flow_steps is not None and max_flow_steps < min_flow_steps):
-            raise ValueError(f"FlowToBetter: need 0 <= min_flow_steps <= max_flow_steps, got {min_flow_steps}, {max_flow_steps}")
-        if candidates < 1:
-            raise ValueError(f"FlowToBetter: candidates must be >= 1, got {candidates}")
-        if batch_size < 1:
-            raise ValueError(f"FlowToBetter: batch_size must be >= 1, got {batch_size}")
+        check_flow_options(top_k=top_k, threshold=threshold, num_blocks=num_blocks, flow_steps=flow_steps,
+                           max_flow_steps=max_flow_steps, min_flow_steps=min_flow_steps,
+                           early_stop_fraction=early_stop_fraction, max_abs_z=max_abs_z, min_length=min_length,
+                           action_tolerance=action_tolerance, candidates=candidates, batch_size=batch_size,
+                           ensemble_rule=ensemble_rule, num_members=getattr(score_model, "num_members", 1))
         if true_return_horizon is not None and (true_reward_fn is None or true_return_horizon < 1):
             raise ValueError("FlowToBetter: true_return_horizon needs a true_reward_fn and must be >= 1, got "
                              f"{true_return_horizon}")
         if true_return_streak is not None and (true_return_horizon is None or true_return_streak < 1):
             raise ValueError("FlowToBetter: true_return_streak needs a true_return_horizon and must be >= 1, got "
                              f"{true_return_streak}")
-        if ensemble_rule not in ("mean", "all"):
-            raise ValueError(f"FlowToBetter: ensemble_rule must be 'mean' or 'all', got {ensemble_rule!r}")
-        if ensemble_rule == "all" and getattr(score_model, "num_members", 1) < 2:
-            raise ValueError("FlowToBetter: ensemble_rule='all' needs a ScoreModel ensemble (num_members >= 2)")
         self.sampler = sampler
         self.score_model = score_model
         self.top_k = int(top_k)
