@@ -124,6 +124,9 @@ def main() -> None:
                         help="the BC actor's observation mean/std: of the chosen set (the recipe's) or of the dataset")
     parser.add_argument("--with-failures", action="store_true",
                         help="candidates: every episode of the subset's groups, not only the successful ones")
+    parser.add_argument("--dataset-overrides", nargs="+", default=[], metavar="KEY=VALUE",
+                        help="with the subsets: the recipe's dataset.* settings to change, e.g. noise=0.3 (the "
+                             "--run-dirs cells use each run's own dataset settings)")
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "bc_ceiling.json")
     args = parser.parse_args()
     unknown = set(args.subsets.split(",")) - set(SUBSETS)
@@ -131,6 +134,13 @@ def main() -> None:
         parser.error(f"--subsets: unknown {sorted(unknown)}; choose from {list(SUBSETS)}")
     torch.set_num_threads(1)
     cfg = OmegaConf.load(ROOT / "recipes" / "config" / "ftb_offline.yaml")
+    if args.dataset_overrides:
+        if args.run_dirs:
+            parser.error("--dataset-overrides: the --run-dirs cells use each run's own dataset settings")
+        try:
+            cfg.dataset = OmegaConf.merge(cfg.dataset, OmegaConf.from_dotlist(args.dataset_overrides))
+        except Exception as err:  # omegaconf's parse errors: name the option
+            parser.error(f"--dataset-overrides {args.dataset_overrides}: {err}")
     steps = args.steps if args.steps is not None else int(cfg.presets.cpu.bc_steps)
     config = {**vars(args), "out": str(args.out), "steps": steps,
               "bc": OmegaConf.to_container(cfg.bc), "eval": {"seed": int(cfg.eval.seed), "max_steps": int(cfg.eval.max_steps)}}
@@ -138,34 +148,40 @@ def main() -> None:
     record = {**run_record(config=config), "cells": {}}
     if args.out.is_file():  # resume: keep finished cells of the same command
         old = json.loads(args.out.read_text())
-        same = {"k", "episodes", "steps", "obs_stats", "with_failures"}
+        same = {"k", "episodes", "steps", "obs_stats", "with_failures", "dataset_overrides"}
         if any(old.get("config", {}).get(key, parser.get_default(key)) != config[key] for key in same):
             parser.error(f"{args.out} holds cells of other options ({sorted(same)}): pass another --out")
         record["cells"] = old.get("cells", {})
-    jobs = []  # (key, task, seed, selection)
+    jobs = []  # (key, task, seed, config of the dataset, its size or None, selection)
     if args.run_dirs:
         for run_dir in args.run_dirs:
             run_cfg = OmegaConf.load(run_dir / "config.yaml")
             scores = torch.load(run_dir / "checkpoints" / "blocks.pt", weights_only=True)["scores"]
+            # the run's own dataset (its noise, groups, ...): its scores index that one
             jobs.append((f"{run_cfg.env.name}/s_psi_top{args.k}/{run_dir}", str(run_cfg.env.name), int(run_cfg.seed),
-                         lambda data, scores=scores: scores.topk(min(args.k, scores.numel())).indices))
+                         run_cfg, scores.numel(), lambda data, scores=scores: scores.topk(min(args.k, scores.numel())).indices))
     else:
         for task in args.tasks.split(","):
             for subset in args.subsets.split(","):
                 for seed in (int(s) for s in args.seeds.split(",")):
                     name = subset + ("+failures" if args.with_failures else "")
-                    jobs.append((f"{task}/{name}/seed{seed}", task, seed,
+                    jobs.append((f"{task}/{name}/seed{seed}", task, seed, cfg, None,
                                  lambda data, subset=subset, seed=seed: select(
                                      data[2], data[3], list(data[1]["groups"]), subset, k=args.k,
                                      generator=torch.Generator().manual_seed(seed),
                                      with_failures=args.with_failures)))
     datasets: dict = {}
-    for key, task, seed, selection in jobs:
+    for key, task, seed, data_cfg, size, selection in jobs:
         if key in record["cells"]:
             continue
-        if task not in datasets:
-            datasets[task] = load_task(task, cfg)
-        cell = run_cell(task, selection(datasets[task]), seed, cfg, datasets[task], episodes=args.episodes,
+        data_key = (task, json.dumps(OmegaConf.to_container(data_cfg.dataset, resolve=True), sort_keys=True))
+        if data_key not in datasets:
+            datasets[data_key] = load_task(task, data_cfg)
+        data = datasets[data_key]
+        if size is not None and data[0].batch_size[0] != size:
+            raise ValueError(f"{key}: the run's scores cover {size} trajectories, its dataset "
+                             f"{data[1].get('path')} has {data[0].batch_size[0]}")
+        cell = run_cell(task, selection(data), seed, cfg, data, episodes=args.episodes,
                         steps=steps, obs_stats=args.obs_stats)
         record["cells"][key] = cell
         write_json(args.out, record)
