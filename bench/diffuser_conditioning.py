@@ -224,8 +224,10 @@ def main() -> None:
             picked = trajs[torch.randint(0, trajs.batch_size[0], (batch_size,), generator=copy_gen)]
             return TensorDict({"condition": picked, "target": picked}, batch_size=[batch_size])
     else:
-        # every key of trajs: observation, action, mask (+ the normalised score attached above)
-        buffer = make_block_pair_buffer(trajs, ids, batch_size=batch_size, seed=int(cfg.seed), keys=None)
+        # every key of trajs: observation, action, mask (+ the normalised score attached above); the run's
+        # own pairing (diffuser.pair_neighbours)
+        buffer = make_block_pair_buffer(trajs, ids, batch_size=batch_size, seed=int(cfg.seed), keys=None,
+                                        neighbours=cfg.diffuser.get("pair_neighbours"))
     tag = f"-{args.tag}" if args.tag else ""
     out = ROOT / "bench" / "results" / "diffuser_conditioning" / f"{name}-{run.name}{tag}.json"
     record = {**run_record(config={**vars(args), "run_dir": str(run), "sampler": sampler,

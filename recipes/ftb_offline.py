@@ -338,6 +338,17 @@ def sdedit_strength(cfg: DictConfig) -> float:
     return float(value)
 
 
+def pair_neighbours(cfg: DictConfig) -> int | None:
+    """``diffuser.pair_neighbours``: None (the paper's uniform block pairs) or m >= 1 (each condition paired with
+    the m next-block trajectories that start nearest to it; :class:`~torchrl_ftb.preference.BlockPairSampler`)."""
+    value = cfg.diffuser.get("pair_neighbours")
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ValueError(f"diffuser.pair_neighbours={value!r}: must be null or an integer >= 1")
+    return int(value)
+
+
 def stage_diffuser(cfg, run: RunDir, trajs, scores, block_ids, obs_dim, act_dim, device, logger):
     d = cfg.diffuser
     horizon = int(trajs.batch_size[1])
@@ -358,7 +369,8 @@ def stage_diffuser(cfg, run: RunDir, trajs, scores, block_ids, obs_dim, act_dim,
     s = diffuser_settings(cfg)
     # a score_condition diffuser also reads each condition's dataset-normalised score
     buffer = make_block_pair_buffer(trajs, block_ids, batch_size=s["batch_size"], seed=int(cfg.seed),
-                                    scores=scores if diffuser.score_condition else None)
+                                    scores=scores if diffuser.score_condition else None,
+                                    neighbours=pair_neighbours(cfg))
     out = train_diffuser(
         diffuser, buffer, steps=s["steps"], lr=s["lr"], grad_clip=s["grad_clip"], logger=logger,
         checkpoint_dir=ckpt_dir, checkpoint_every=int(d.checkpoint_every), resume=run.resume,
@@ -781,6 +793,7 @@ def run(cfg: DictConfig) -> dict:
                              f"env.name={cfg.env.name!r} episodes terminate (falls) and the diffuser's samples carry "
                              f"no termination flag: leave it null")
     sdedit_strength(cfg)  # a malformed strength fails now, not after the diffuser's training
+    pair_neighbours(cfg)
     try:  # the flow's numbers fail now, not after the diffuser's training
         check_flow_options(**flow_options(cfg), num_members=1 if flow_filter(cfg) == "true_return"
                            else int(cfg.score_model.get("num_members", 1)))

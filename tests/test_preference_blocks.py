@@ -104,6 +104,44 @@ def test_block_pair_buffer_errors(toy):
         make_block_pair_buffer(toy.exclude("mask"), torch.arange(40) % 2, batch_size=4)
 
 
+def test_neighbour_pairs_stay_adjacent_and_start_nearest(toy):
+    """``neighbours=m``: each condition is paired only with the m next-block trajectories starting nearest to it."""
+    blocks = torch.tensor([0] * 12 + [1] * 16 + [2] * 12)[torch.randperm(40, generator=torch.Generator().manual_seed(1))]
+    rb = make_block_pair_buffer(toy, blocks, batch_size=3000, seed=0, neighbours=3)
+    batch = rb.sample()
+    i0, i1 = batch["index"].unbind(-1)
+    k = batch["block"]
+    assert bool((blocks[i0] == k).all()) and bool((blocks[i1] == k + 1).all())
+    starts = toy["observation"][:, 0]
+    std = starts.std(0)
+    z = (starts - starts.mean(0)) / torch.where(std > 1e-8, std, torch.ones_like(std))
+    for a in i0.unique().tolist():
+        nxt = torch.nonzero(blocks == blocks[a] + 1).squeeze(-1)
+        nearest = set(nxt[torch.cdist(z[a:a + 1], z[nxt])[0].argsort()[:3]].tolist())
+        assert set(i1[i0 == a].tolist()) <= nearest  # only its three nearest ...
+    assert len(set(i1[i0 == i0[0]].tolist())) > 1  # ... drawn among them, not always the nearest one
+    # the condition and its target start nearer each other than uniform pairs do
+    uniform = make_block_pair_buffer(toy, blocks, batch_size=3000, seed=0).sample()["index"]
+    def gap(idx):
+        return (z[idx[:, 0]] - z[idx[:, 1]]).norm(dim=-1).mean()
+    assert gap(batch["index"]) < 0.8 * gap(uniform)
+    # m above a block's size: every member of the next block; seeded and reproducible; a state_dict round trip
+    big = BlockPairSampler(blocks, neighbours=100, starts=starts)
+    assert bool((big.neighbour_table[blocks == 0] >= 0).sum(1).eq(16).all())
+    assert bool((big.neighbour_table[blocks == 2] == -1).all())  # the top block conditions nothing
+    again = make_block_pair_buffer(toy, blocks, batch_size=64, seed=5, neighbours=3).sample()["index"]
+    assert torch.equal(again, make_block_pair_buffer(toy, blocks, batch_size=64, seed=5, neighbours=3).sample()["index"])
+    copy = BlockPairSampler(torch.zeros(2, dtype=torch.long) + torch.tensor([0, 1]))
+    copy.load_state_dict(big.state_dict())
+    assert copy.neighbours == 100 and torch.equal(copy.neighbour_table, big.neighbour_table)
+    with pytest.raises(ValueError, match="neighbours needs starts"):
+        BlockPairSampler(blocks, neighbours=2)
+    with pytest.raises(ValueError, match="neighbours must be >= 1"):
+        BlockPairSampler(blocks, neighbours=0, starts=starts)
+    with pytest.raises(ValueError, match="starts must be finite"):
+        BlockPairSampler(blocks, neighbours=2, starts=starts[:5])
+
+
 # --------------------------------------------------------------------------- labelled pairs
 def test_labeled_pair_buffer_orders_worse_to_better_and_skips_ties(toy):
     ret = toy["next", "reward"].squeeze(-1).sum(-1)

@@ -217,7 +217,8 @@ def test_bad_config_is_a_clear_error(tmp_path):
                               ("flow.ensemble_rule=all", "needs a ScoreModel ensemble"),
                               ("bc.batch_size=0", "bc.batch_size=0: must be >= 1"),
                               ("bc.lr=0", "bc.lr=0: must be > 0"),
-                              ("eval.num_episodes=0", "eval.num_episodes=0: must be >= 1")):
+                              ("eval.num_episodes=0", "eval.num_episodes=0: must be >= 1"),
+                              ("diffuser.pair_neighbours=0", "diffuser.pair_neighbours=0: must be null or an integer")):
         with pytest.raises(ValueError, match=message):
             recipe.run(_cfg(tmp_path / "f", override))
     assert not (tmp_path / "f").exists()  # refused before anything is written
@@ -251,6 +252,17 @@ def test_bad_config_is_a_clear_error(tmp_path):
     # a locomotion env without the dataset kind
     with pytest.raises(ValueError, match="kind="):
         recipe.run(_cfg(tmp_path / "d", "env.name=hopper"))
+
+
+def test_neighbour_pairs_train_the_diffuser_and_lock_its_stage(tmp_path):
+    """``diffuser.pair_neighbours``: the diffuser trains on start-matched pairs; the option belongs to its stage."""
+    recipe = _recipe()
+    out = recipe.run(_cfg(tmp_path, "stop_after=diffuser", "diffuser.pair_neighbours=3"))
+    assert out["stopped_after"] == "diffuser" and (tmp_path / "checkpoints" / "diffuser").is_dir()
+    with pytest.raises(ValueError, match="different config"):  # a changed pairing means another diffuser
+        recipe.run(_cfg(tmp_path, "resume=true", "diffuser.pair_neighbours=5"))
+    redone = recipe.run(_cfg(tmp_path, "resume=true", "redo_from=diffuser", "stop_after=diffuser"))
+    assert redone["stopped_after"] == "diffuser"
 
 
 def test_active_query_labels_stage(tmp_path):

@@ -57,15 +57,35 @@ class BlockPairSampler(Sampler):
     reproducible. Works on a 1-D storage whose item ``i`` is trajectory ``i`` (e.g. a
     :class:`~torchrl.data.LazyTensorStorage` filled with an ``[N, H]`` batch).
 
+    With ``neighbours=m`` (not the paper's), ``i1`` is drawn from the ``m`` members of ``B_{k+1}`` that
+    start nearest to ``i0`` (Euclidean distance of the z-scored ``starts``, e.g. first observations:
+    on Meta-World they hold the object's and the goal's positions). The pairs then teach "a better
+    trajectory *from the same situation*" instead of "any better trajectory", which is what a flow
+    step asks of a sample conditioned on one top-k trajectory.
+
     Args:
         block_ids: ``int64 [N]`` block of each stored trajectory (from :func:`make_blocks`),
             contiguous ids ``0..K-1`` with ``K >= 2``, every block non-empty.
 
+    Keyword Args:
+        neighbours: ``m >= 1``: pair each ``i0`` only with its ``m`` nearest next-block trajectories
+            (all of them when the block is smaller). ``None`` (default): uniform, Eq. 5.
+        starts: ``[N, D]`` what "near" compares (needed with ``neighbours``).
+
     Returns (from :meth:`sample`):
         ``index`` ``[B, 2]`` and info ``{"block": k [B]}``.
+
+    Example:
+        >>> import torch
+        >>> blocks = torch.tensor([0, 0, 1, 1])
+        >>> starts = torch.tensor([[0.0], [10.0], [9.0], [1.0]])
+        >>> sampler = BlockPairSampler(blocks, neighbours=1, starts=starts)
+        >>> sampler.neighbour_table.tolist()  # 0 -> 3 (start 1), 1 -> 2 (start 9)
+        [[3], [2], [-1], [-1]]
     """
 
-    def __init__(self, block_ids: torch.Tensor) -> None:
+    def __init__(self, block_ids: torch.Tensor, *, neighbours: int | None = None,
+                 starts: torch.Tensor | None = None) -> None:
         block_ids = torch.as_tensor(block_ids)
         if block_ids.ndim != 1 or block_ids.dtype not in (torch.int64, torch.int32):
             raise ValueError(f"BlockPairSampler: block_ids must be a 1-D integer tensor, got {block_ids.dtype} {list(block_ids.shape)}")
@@ -82,6 +102,35 @@ class BlockPairSampler(Sampler):
         self._counts = counts
         self._starts = torch.cumsum(counts, 0) - counts
         self._members = torch.argsort(block_ids, stable=True)  # trajectories grouped by block
+        self.neighbours = None if neighbours is None else int(neighbours)
+        self.starts = None
+        if self.neighbours is not None:
+            if self.neighbours < 1:
+                raise ValueError(f"BlockPairSampler: neighbours must be >= 1 (or None), got {neighbours}")
+            if starts is None:
+                raise ValueError("BlockPairSampler: neighbours needs starts ([N, D], what 'near' compares)")
+            starts = torch.as_tensor(starts, dtype=torch.float32).cpu()
+            starts = starts.reshape(starts.shape[0], -1) if starts.ndim >= 1 else starts
+            if starts.shape[0] != block_ids.numel() or starts.ndim != 2 or not bool(torch.isfinite(starts).all()):
+                raise ValueError(f"BlockPairSampler: starts must be finite [N={block_ids.numel()}, D], "
+                                 f"got {list(starts.shape)}")
+            self.starts = starts
+        #: ``[N, m]`` the next-block neighbours of each trajectory (-1: none; top block, or padding)
+        self.neighbour_table, self._neighbour_counts = self._neighbour_table()
+
+    def _neighbour_table(self) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+        if self.neighbours is None:
+            return None, None
+        std = self.starts.std(0)
+        z = (self.starts - self.starts.mean(0)) / torch.where(std > 1e-8, std, torch.ones_like(std))
+        table = torch.full((self.block_ids.numel(), self.neighbours), -1, dtype=torch.long)
+        for k in range(self.num_blocks - 1):
+            rows = torch.nonzero(self.block_ids == k).squeeze(-1)
+            nxt = torch.nonzero(self.block_ids == k + 1).squeeze(-1)
+            m = min(self.neighbours, nxt.numel())
+            nearest = torch.cdist(z[rows], z[nxt]).topk(m, dim=1, largest=False).indices  # [|B_k|, m]
+            table[rows, :m] = nxt[nearest]
+        return table, (table >= 0).sum(1)
 
     def _draw(self, block: torch.Tensor) -> torch.Tensor:
         u = torch.rand(block.shape, generator=self._rng)
@@ -95,8 +144,14 @@ class BlockPairSampler(Sampler):
                 f"{self.block_ids.numel()} entries"
             )
         k = torch.randint(0, self.num_blocks - 1, (batch_size,), generator=self._rng)
-        index = torch.stack([self._draw(k), self._draw(k + 1)], -1)
-        return index, {"block": k}
+        i0 = self._draw(k)
+        if self.neighbour_table is None:
+            i1 = self._draw(k + 1)
+        else:
+            u = torch.rand(k.shape, generator=self._rng)
+            count = self._neighbour_counts[i0]
+            i1 = self.neighbour_table[i0, (u * count).long().clamp(max=count - 1)]
+        return torch.stack([i0, i1], -1), {"block": k}
 
     def _empty(self) -> None:
         pass
@@ -108,13 +163,15 @@ class BlockPairSampler(Sampler):
         pass
 
     def state_dict(self) -> dict[str, Any]:
-        return {"block_ids": self.block_ids}
+        return {"block_ids": self.block_ids, "neighbours": self.neighbours, "starts": self.starts}
 
     def load_state_dict(self, state_dict: dict[str, Any]) -> None:
-        self.__init__(state_dict["block_ids"])
+        self.__init__(state_dict["block_ids"], neighbours=state_dict.get("neighbours"),
+                      starts=state_dict.get("starts"))
 
     def __repr__(self) -> str:
-        return f"{type(self).__name__}(num_blocks={self.num_blocks}, sizes={self._counts.tolist()})"
+        near = "" if self.neighbours is None else f", neighbours={self.neighbours}"
+        return f"{type(self).__name__}(num_blocks={self.num_blocks}, sizes={self._counts.tolist()}{near})"
 
 
 class _AsTarget(Transform):
@@ -196,6 +253,7 @@ def make_block_pair_buffer(
     seed: int | None = None,
     keys: Sequence[NestedKey] | None = ("observation", "action", "mask"),
     scores: torch.Tensor | None = None,
+    neighbours: int | None = None,
 ) -> TensorDictReplayBuffer:
     """Replay buffer over ``trajs`` whose ``sample()`` is an adjacent-block pair batch (Eq. 5).
 
@@ -212,6 +270,9 @@ def make_block_pair_buffer(
             carries each trajectory's dataset-normalised score under :data:`NORMALIZED_SCORE_KEY`
             (:func:`with_normalized_scores`): what a ``score_condition`` diffuser reads. The flow
             normalises with the same dataset minimum and maximum.
+        neighbours: pair each condition only with the ``m`` next-block trajectories whose first
+            observation is nearest to its own (:class:`BlockPairSampler`; not the paper's).
+            ``None`` (default): uniform pairs.
 
     Raises:
         ValueError: malformed ``trajs``, ``block_ids`` or ``scores`` of the wrong length, < 2 blocks.
@@ -225,7 +286,9 @@ def make_block_pair_buffer(
     if scores is not None:
         trajs = with_normalized_scores(trajs, scores)
         keys = None if keys is None else [*keys, NORMALIZED_SCORE_KEY]
-    return _pair_buffer(trajs, BlockPairSampler(block_ids), batch_size=batch_size, seed=seed, keys=keys)
+    starts = None if neighbours is None else trajs.get("observation")[:, 0]
+    sampler = BlockPairSampler(block_ids, neighbours=neighbours, starts=starts)
+    return _pair_buffer(trajs, sampler, batch_size=batch_size, seed=seed, keys=keys)
 
 
 def make_labeled_pair_buffer(
