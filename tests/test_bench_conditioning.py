@@ -138,3 +138,20 @@ def test_measure_runs_writes_after_every_run_with_its_provenance(tmp_path, capsy
     assert record["config"] == {"run_dirs": [str(tmp_path / "a"), str(tmp_path / "b")], "horizon": 500}
     assert {"command", "git_commit", "machine"} <= set(record)
     assert "a: 1.5" in capsys.readouterr().out
+
+
+def test_pair_starts_measures_closer_starts_for_start_matched_pairs():
+    bench = load_script(ROOT / "bench" / "pair_starts.py", "bench_pair_starts")
+    g = torch.Generator().manual_seed(0)
+    starts = torch.zeros(60, 39)  # one hand start, as on Meta-World; only the object and the goal vary
+    starts[:, 4:7] = torch.rand(60, 3, generator=g) * 0.1
+    starts[:, 36:39] = torch.rand(60, 3, generator=g) * 0.1
+    ids = torch.arange(60) % 3
+    kw = dict(pairs=4000, seed=0, parts=bench.METAWORLD_PARTS)
+    uniform = bench.start_gaps(starts, ids, neighbours=None, **kw)
+    nearest = bench.start_gaps(starts, ids, neighbours=1, **kw)
+    assert set(uniform) == {"z", "hand_cm", "object_cm", "goal_cm"} and uniform["hand_cm"] == 0.0
+    assert nearest["z"] < 0.8 * uniform["z"] and nearest["object_cm"] < uniform["object_cm"]
+    # m as large as a block: the same pairs as uniform ones, in distribution
+    everyone = bench.start_gaps(starts, ids, neighbours=20, **kw)
+    assert everyone["z"] == pytest.approx(uniform["z"], rel=0.05)
