@@ -478,7 +478,7 @@ def check_policy_options(cfg: DictConfig) -> None:
                              ("bc.weight_decay", 0, False), ("eval.num_episodes", 1, False),
                              ("eval.num_envs", 1, False), ("eval.max_steps", 1, False)):
         value = OmegaConf.select(cfg, key)
-        if value is None or not (value > low if strict else value >= low):
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not (value > low if strict else value >= low):
             raise ValueError(f"{key}={value!r}: must be {'>' if strict else '>='} {low}")
 
 

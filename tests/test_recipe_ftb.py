@@ -217,6 +217,7 @@ def test_bad_config_is_a_clear_error(tmp_path):
                               ("flow.ensemble_rule=all", "needs a ScoreModel ensemble"),
                               ("bc.batch_size=0", "bc.batch_size=0: must be >= 1"),
                               ("bc.lr=0", "bc.lr=0: must be > 0"),
+                              ("bc.steps=many", "bc.steps='many': must be >= 0"),
                               ("eval.num_episodes=0", "eval.num_episodes=0: must be >= 1"),
                               ("diffuser.pair_neighbours=0", "diffuser.pair_neighbours=0: must be null or an integer")):
         with pytest.raises(ValueError, match=message):
