@@ -100,7 +100,7 @@ class BlockPairSampler(Sampler):
         self.block_ids = block_ids
         self.num_blocks = int(counts.numel())
         self._counts = counts
-        self._starts = torch.cumsum(counts, 0) - counts
+        self._offsets = torch.cumsum(counts, 0) - counts
         self._members = torch.argsort(block_ids, stable=True)  # trajectories grouped by block
         self.neighbours = None if neighbours is None else int(neighbours)
         self.starts = None
@@ -110,7 +110,8 @@ class BlockPairSampler(Sampler):
             if starts is None:
                 raise ValueError("BlockPairSampler: neighbours needs starts ([N, D], what 'near' compares)")
             starts = torch.as_tensor(starts, dtype=torch.float32).cpu()
-            starts = starts.reshape(starts.shape[0], -1) if starts.ndim >= 1 else starts
+            if starts.ndim == 1:  # one feature per trajectory
+                starts = starts[:, None]
             if starts.shape[0] != block_ids.numel() or starts.ndim != 2 or not bool(torch.isfinite(starts).all()):
                 raise ValueError(f"BlockPairSampler: starts must be finite [N={block_ids.numel()}, D], "
                                  f"got {list(starts.shape)}")
@@ -135,7 +136,7 @@ class BlockPairSampler(Sampler):
     def _draw(self, block: torch.Tensor) -> torch.Tensor:
         u = torch.rand(block.shape, generator=self._rng)
         offset = (u * self._counts[block]).long().clamp(max=self._counts[block] - 1)
-        return self._members[self._starts[block] + offset]
+        return self._members[self._offsets[block] + offset]
 
     def sample(self, storage: Storage, batch_size: int) -> tuple[torch.Tensor, dict]:
         if len(storage) != self.block_ids.numel():
