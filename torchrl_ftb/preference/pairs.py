@@ -112,7 +112,7 @@ class BlockPairSampler(Sampler):
             starts = torch.as_tensor(starts, dtype=torch.float32).cpu()
             if starts.ndim == 1:  # one feature per trajectory
                 starts = starts[:, None]
-            if starts.shape[0] != block_ids.numel() or starts.ndim != 2 or not bool(torch.isfinite(starts).all()):
+            if starts.ndim != 2 or starts.shape[0] != block_ids.numel() or not bool(torch.isfinite(starts).all()):
                 raise ValueError(f"BlockPairSampler: starts must be finite [N={block_ids.numel()}, D], "
                                  f"got {list(starts.shape)}")
             self.starts = starts
