@@ -47,6 +47,7 @@ sys.path.insert(0, str(ROOT / "bench"))
 from flow_diagnostics import (  # noqa: E402
     load_run, parse_run_args, run_parser, sample_true_return, sampling_settings, spearman,
 )
+from pair_starts import METAWORLD_PARTS  # noqa: E402
 
 from torchrl_ftb.diffusion import (  # noqa: E402
     get_preset, load_diffuser, make_diffuser, parse_overrides, train_diffuser,
@@ -102,12 +103,37 @@ def evaluate(diffuser, model, trajs, scores, ids, *, per_block: int, sampler: st
                                    condition_true_return_max=float(returns[idx[m]].max()),
                                    sample_true_return_max=float(true_new[m].max()),
                                    samples_above_condition=float((true_new[m] > returns[idx[m]]).double().mean()))
+    per_start = start_gaps_to_conditions(sample["observation"][:, 0].float(), cond["observation"][:, 0].float(),
+                                         trajs["observation"][:, 0].float())
     inner = blocks < num_blocks - 1  # the correlations: blocks that are conditions in training
     extra = {} if true_new is None else {
         "spearman_sample_true_return_vs_condition_block": spearman(blocks[inner].double(), true_new[inner])}
     return {**extra, "spearman_sample_score_vs_condition_block": spearman(blocks[inner].double(), s_new[inner]),
             "spearman_sample_score_vs_condition_score": spearman(scores[idx[inner]], s_new[inner]),
-            "per_condition_block": per, "num_conditions": int(idx.numel())}
+            "per_condition_block": per, "num_conditions": int(idx.numel()), "start_gap": per_start}
+
+
+def start_gaps_to_conditions(sample_starts: torch.Tensor, condition_starts: torch.Tensor,
+                             data_starts: torch.Tensor) -> dict[str, float]:
+    """Does a sample start where its condition starts? The mean distance of each sample's first observation to
+    its own condition's (``own``) and, averaged, to every other condition's (``other``): z-scored by the
+    dataset's starts, and on Meta-World (39-d) the object's and the goal's positions in cm. ``own`` well below
+    ``other`` means the condition path carries the start (what start-matched pairs teach)."""
+    n = sample_starts.shape[0]
+    parts = {"z": None, **(METAWORLD_PARTS if sample_starts.shape[-1] == 39 else {})}
+    std, mean = data_starts.std(0), data_starts.mean(0)
+    scale = torch.where(std > 1e-8, std, torch.ones_like(std))
+    out = {}
+    for name, part in parts.items():
+        if part is None:
+            a, b, unit = (sample_starts - mean) / scale, (condition_starts - mean) / scale, 1.0
+        else:
+            a, b, unit = sample_starts[:, part], condition_starts[:, part], 100.0
+        dist = torch.cdist(a.double(), b.double()) * unit  # [n samples, n conditions]
+        own = dist.diagonal()
+        out[f"{name}_own"] = float(own.mean())
+        out[f"{name}_other"] = float(((dist.sum(1) - own) / max(n - 1, 1)).mean())
+    return out
 
 
 def _num(value: float | None) -> str:
@@ -249,7 +275,9 @@ def main() -> None:
         print(f"step {step}: spearman(block) {ev['spearman_sample_score_vs_condition_block']:.3f} "
               f"spearman(score) {ev['spearman_sample_score_vs_condition_score']:.3f} "
               + " ".join(f"B{k}:{v['sample_score']:.0f}/{_num(v['target_block_score'])}"
-                         for k, v in ev["per_condition_block"].items()), flush=True)
+                         for k, v in ev["per_condition_block"].items())
+              + " start gap own/other " + ", ".join(f"{k.removesuffix('_own')} {v:.2f}/{ev['start_gap'][k[:-4] + '_other']:.2f}"
+                                                    for k, v in ev["start_gap"].items() if k.endswith("_own")), flush=True)
         out_of_time = args.max_minutes is not None and time.time() - started > 60 * args.max_minutes
         if step >= args.steps or out_of_time:
             break

@@ -38,6 +38,13 @@ def test_top_block_conditions_have_no_target_and_keep_the_other_blocks_statistic
     assert b4["condition_true_return_max"] <= float(returns.max()) + 1e-9
     assert b4["condition_true_return"] >= float(returns[ids == 3].min()) - 1e-9  # conditions from the top block
     assert 0.0 <= b4["samples_above_condition"] <= 1.0
+    assert set(top["start_gap"]) == {"z_own", "z_other"}  # no Meta-World parts on the toy
+    # a sample that starts where its condition does: own gap 0, below the other conditions'
+    starts = torch.zeros(6, 39)
+    starts[:, 4:7] = torch.rand(6, 3, generator=torch.Generator().manual_seed(0)) * 0.1
+    gaps = bench.start_gaps_to_conditions(starts, starts, starts)
+    assert gaps["z_own"] == 0.0 and gaps["object_cm_own"] == 0.0 and gaps["object_cm_other"] > 1.0
+    assert gaps["goal_cm_other"] == 0.0  # one goal
     for k in ("1", "2", "3"):  # the same conditions and targets for the blocks the pairs use
         for field in ("condition_score", "target_block_score", "condition_true_return", "target_block_true_return"):
             assert top["per_condition_block"][k][field] == pytest.approx(base["per_condition_block"][k][field])
