@@ -54,7 +54,7 @@ from torchrl_ftb.diffusion import (  # noqa: E402
 )
 from torchrl_ftb.envs import observation_layout, true_reward_fn  # noqa: E402
 from torchrl_ftb.preference import (  # noqa: E402
-    load_score_model, make_block_pair_buffer, score_trajectories, with_normalized_scores,
+    load_score_model, make_block_pair_buffer, score_trajectories, standardized_starts, with_normalized_scores,
 )
 from torchrl_ftb.provenance import run_record, write_json  # noqa: E402
 
@@ -121,12 +121,11 @@ def start_gaps_to_conditions(sample_starts: torch.Tensor, condition_starts: torc
     ``other`` means the condition path carries the start (what start-matched pairs teach)."""
     n = sample_starts.shape[0]
     parts = {"z": None, **(METAWORLD_PARTS if sample_starts.shape[-1] == 39 else {})}
-    std, mean = data_starts.std(0), data_starts.mean(0)
-    scale = torch.where(std > 1e-8, std, torch.ones_like(std))
     out = {}
     for name, part in parts.items():
         if part is None:
-            a, b, unit = (sample_starts - mean) / scale, (condition_starts - mean) / scale, 1.0
+            a = standardized_starts(sample_starts, reference=data_starts)
+            b, unit = standardized_starts(condition_starts, reference=data_starts), 1.0
         else:
             a, b, unit = sample_starts[:, part], condition_starts[:, part], 100.0
         dist = torch.cdist(a.double(), b.double()) * unit  # [n samples, n conditions]

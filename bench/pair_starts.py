@@ -28,7 +28,7 @@ sys.path.insert(0, str(ROOT / "bench"))
 from flow_generated import measure_runs, require_finished_runs  # noqa: E402
 from torchrl_ftb.datasets import dataset_kwargs, make_dataset  # noqa: E402
 from torchrl_ftb.envs import env_kind  # noqa: E402
-from torchrl_ftb.preference import BlockPairSampler  # noqa: E402
+from torchrl_ftb.preference import BlockPairSampler, standardized_starts  # noqa: E402
 
 #: Meta-World observation slices (metres): the hand, the first object, the goal
 METAWORLD_PARTS = {"hand_cm": slice(0, 3), "object_cm": slice(4, 7), "goal_cm": slice(36, 39)}
@@ -51,8 +51,7 @@ def start_gaps(starts: torch.Tensor, block_ids: torch.Tensor, *, neighbours: int
     sampler = BlockPairSampler(block_ids, neighbours=neighbours, starts=starts if neighbours else None)
     sampler._rng = torch.Generator().manual_seed(seed)  # the replay buffer's generator, as a seeded buffer sets it
     index, _ = sampler.sample(_Sized(block_ids.numel()), pairs)
-    std = starts.std(0)
-    z = (starts - starts.mean(0)) / torch.where(std > 1e-8, std, torch.ones_like(std))
+    z = standardized_starts(starts)
     out = {"z": float((z[index[:, 0]] - z[index[:, 1]]).norm(dim=-1).mean())}
     for name, part in parts.items():
         out[name] = float((starts[index[:, 0], part] - starts[index[:, 1], part]).norm(dim=-1).mean() * 100)

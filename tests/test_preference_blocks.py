@@ -12,6 +12,7 @@ from torchrl_ftb.preference import (
     make_block_pair_buffer,
     make_blocks,
     make_labeled_pair_buffer,
+    standardized_starts,
 )
 from torchrl_ftb.testing import make_toy_dataset
 
@@ -113,8 +114,7 @@ def test_neighbour_pairs_stay_adjacent_and_start_nearest(toy):
     k = batch["block"]
     assert bool((blocks[i0] == k).all()) and bool((blocks[i1] == k + 1).all())
     starts = toy["observation"][:, 0]
-    std = starts.std(0)
-    z = (starts - starts.mean(0)) / torch.where(std > 1e-8, std, torch.ones_like(std))
+    z = standardized_starts(starts)
     for a in i0.unique().tolist():
         nxt = torch.nonzero(blocks == blocks[a] + 1).squeeze(-1)
         nearest = set(nxt[torch.cdist(z[a:a + 1], z[nxt])[0].argsort()[:3]].tolist())

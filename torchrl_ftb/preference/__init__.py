@@ -20,6 +20,7 @@ from torchrl_ftb.preference.pairs import (
     make_block_pair_buffer,
     make_labeled_pair_buffer,
     make_trajectory_buffer,
+    standardized_starts,
 )
 from torchrl_ftb.preference.queries import QUERY_STRATEGIES, make_query_labels, query_priority, select_queries
 from torchrl_ftb.preference.score import (
@@ -53,6 +54,7 @@ __all__ = [
     "make_labeled_pair_buffer",
     "make_query_labels",
     "make_trajectory_buffer",
+    "standardized_starts",
     "load_score_model",
     "pairwise_accuracy",
     "plot_preference_scatter",

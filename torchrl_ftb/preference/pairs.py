@@ -47,7 +47,22 @@ __all__ = [
     "make_block_pair_buffer",
     "make_labeled_pair_buffer",
     "make_trajectory_buffer",
+    "standardized_starts",
 ]
+
+
+def standardized_starts(starts: torch.Tensor, *, reference: torch.Tensor | None = None) -> torch.Tensor:
+    """``starts`` z-scored per dimension by ``reference``'s mean and std (default: ``starts``'); a dimension
+    that does not vary in ``reference`` is only centred. The scale on which :class:`BlockPairSampler` calls
+    starts near (and the benches measure how near).
+
+    Example:
+        >>> standardized_starts(torch.tensor([[0.0, 5.0], [2.0, 5.0]])).tolist()
+        [[-0.7071067690849304, 0.0], [0.7071067690849304, 0.0]]
+    """
+    reference = starts if reference is None else reference
+    std = reference.std(0)
+    return (starts - reference.mean(0)) / torch.where(std > 1e-8, std, torch.ones_like(std))
 
 
 class BlockPairSampler(Sampler):
@@ -122,8 +137,7 @@ class BlockPairSampler(Sampler):
     def _neighbour_table(self) -> tuple[torch.Tensor | None, torch.Tensor | None]:
         if self.neighbours is None:
             return None, None
-        std = self.starts.std(0)
-        z = (self.starts - self.starts.mean(0)) / torch.where(std > 1e-8, std, torch.ones_like(std))
+        z = standardized_starts(self.starts)
         table = torch.full((self.block_ids.numel(), self.neighbours), -1, dtype=torch.long)
         for k in range(self.num_blocks - 1):
             rows = torch.nonzero(self.block_ids == k).squeeze(-1)
