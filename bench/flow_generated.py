@@ -223,15 +223,20 @@ def main() -> None:
                  describe_run)
 
 
+def load_flow_sets(run: Path) -> tuple[dict, TensorDict, TensorDict, torch.Tensor]:
+    """``(checkpoint, final set, original top-k, generated flags [k])`` of a finished run's ``checkpoints/flow.pt``."""
+    ckpt = torch.load(run / "checkpoints" / "flow.pt", weights_only=True)
+    final = TensorDict(ckpt["trajectories"]["data"], batch_size=ckpt["trajectories"]["batch_size"])
+    original = TensorDict(ckpt["original"]["data"], batch_size=ckpt["original"]["batch_size"])
+    return ckpt, final, original, ckpt["source_step"] > 0
+
+
 def measure_run(run: Path, *, horizon: int | None, max_frame_stack_error: float, max_hand_model_error: float,
                 contact_quantile: float) -> dict:
     """One run's entry: the physics proxies of every generated trajectory in its final set and, with
     ``horizon``, the oracle improvement (plain, filled, and with the physically invalid samples replaced)."""
     cfg = OmegaConf.load(run / "config.yaml")
-    ckpt = torch.load(run / "checkpoints" / "flow.pt", weights_only=True)
-    final = TensorDict(ckpt["trajectories"]["data"], batch_size=ckpt["trajectories"]["batch_size"])
-    original = TensorDict(ckpt["original"]["data"], batch_size=ckpt["original"]["batch_size"])
-    generated = ckpt["source_step"] > 0
+    ckpt, final, original, generated = load_flow_sets(run)
     ref = physics_reference(original, contact_quantile=contact_quantile)
     rows = generated_rows(ckpt, final, generated, ref)
     invalid = physically_invalid(rows, max_frame_stack_error=max_frame_stack_error,

@@ -22,15 +22,13 @@ import json
 import sys
 from pathlib import Path
 
-import torch
-from tensordict import TensorDict
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
 from expert_headroom import load_metaworld_run  # noqa: E402
-from flow_generated import measure_runs, runs_from_args  # noqa: E402
+from flow_generated import load_flow_sets, measure_runs, runs_from_args  # noqa: E402
 
 from torchrl_ftb.analysis import open_loop_improvement, summarize_samples  # noqa: E402
 
@@ -39,10 +37,8 @@ def load_flow(run: Path) -> tuple:
     """``(cfg, data, meta, final, original, generated, original_rows)`` of a finished run directory: its
     dataset and the flow's final set and original top-k (``checkpoints/flow.pt``)."""
     cfg, data, meta = load_metaworld_run(run)
-    ckpt = torch.load(run / "checkpoints" / "flow.pt", weights_only=True)
-    final = TensorDict(ckpt["trajectories"]["data"], batch_size=ckpt["trajectories"]["batch_size"])
-    original = TensorDict(ckpt["original"]["data"], batch_size=ckpt["original"]["batch_size"])
-    return cfg, data, meta, final, original, ckpt["source_step"] > 0, ckpt.get("original_indices")
+    ckpt, final, original, generated = load_flow_sets(run)
+    return cfg, data, meta, final, original, generated, ckpt.get("original_indices")
 
 
 def open_loop(run: Path, *, horizon: int, progress: bool, hold: bool = True) -> dict:
@@ -139,6 +135,7 @@ def main() -> None:
     measure_runs(args.run_dirs, args.out, {"horizon": args.horizon, "hold": not args.no_hold},
                  lambda run: open_loop(run, horizon=args.horizon, progress=not args.no_progress, hold=not args.no_hold),
                  describe)
+
 
 if __name__ == "__main__":
     main()

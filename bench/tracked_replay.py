@@ -102,5 +102,6 @@ def main() -> None:
                  lambda run: tracked(run, horizon=args.horizon, tracker_steps=args.tracker_steps, seed=args.seed,
                                      progress=not args.no_progress), describe)
 
+
 if __name__ == "__main__":
     main()
