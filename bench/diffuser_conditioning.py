@@ -47,14 +47,14 @@ sys.path.insert(0, str(ROOT / "bench"))
 from flow_diagnostics import (  # noqa: E402
     load_run, parse_run_args, run_parser, sample_true_return, sampling_settings, spearman,
 )
-from pair_starts import METAWORLD_PARTS  # noqa: E402
+from pair_starts import start_views  # noqa: E402
 
 from torchrl_ftb.diffusion import (  # noqa: E402
     get_preset, load_diffuser, make_diffuser, parse_overrides, train_diffuser,
 )
 from torchrl_ftb.envs import observation_layout, true_reward_fn  # noqa: E402
 from torchrl_ftb.preference import (  # noqa: E402
-    load_score_model, make_block_pair_buffer, score_trajectories, standardized_starts, with_normalized_scores,
+    load_score_model, make_block_pair_buffer, score_trajectories, with_normalized_scores,
 )
 from torchrl_ftb.provenance import run_record, write_json  # noqa: E402
 
@@ -119,16 +119,12 @@ def start_gaps_to_conditions(sample_starts: torch.Tensor, condition_starts: torc
     its own condition's (``own``) and, averaged, to every other condition's (``other``): z-scored by the
     dataset's starts, and on Meta-World (39-d) the object's and the goal's positions in cm. ``own`` well below
     ``other`` means the condition path carries the start (what start-matched pairs teach)."""
-    n = sample_starts.shape[0]
-    parts = {"z": None, **(METAWORLD_PARTS if sample_starts.shape[-1] == 39 else {})}
+    n, metaworld = sample_starts.shape[0], sample_starts.shape[-1] == 39
+    samples = start_views(sample_starts, reference=data_starts, metaworld=metaworld)
+    conditions = start_views(condition_starts, reference=data_starts, metaworld=metaworld)
     out = {}
-    for name, part in parts.items():
-        if part is None:
-            a = standardized_starts(sample_starts, reference=data_starts)
-            b, unit = standardized_starts(condition_starts, reference=data_starts), 1.0
-        else:
-            a, b, unit = sample_starts[:, part], condition_starts[:, part], 100.0
-        dist = torch.cdist(a.double(), b.double()) * unit  # [n samples, n conditions]
+    for name, a in samples.items():
+        dist = torch.cdist(a.double(), conditions[name].double())  # [n samples, n conditions]
         own = dist.diagonal()
         out[f"{name}_own"] = float(own.mean())
         out[f"{name}_other"] = float(((dist.sum(1) - own) / max(n - 1, 1)).mean())

@@ -34,6 +34,16 @@ from torchrl_ftb.preference import BlockPairSampler, standardized_starts  # noqa
 METAWORLD_PARTS = {"hand_cm": slice(0, 3), "object_cm": slice(4, 7), "goal_cm": slice(36, 39)}
 
 
+def start_views(starts: torch.Tensor, *, reference: torch.Tensor, metaworld: bool) -> dict[str, torch.Tensor]:
+    """The first observations as this bench and ``diffuser_conditioning.py`` compare them: ``"z"`` (z-scored by
+    ``reference``'s, :func:`~torchrl_ftb.preference.standardized_starts`) and, on Meta-World, the hand's, the
+    object's and the goal's positions in cm (:data:`METAWORLD_PARTS`)."""
+    views = {"z": standardized_starts(starts, reference=reference)}
+    if metaworld:
+        views.update({name: starts[:, part] * 100 for name, part in METAWORLD_PARTS.items()})
+    return views
+
+
 class _Sized:
     """The storage stand-in :meth:`BlockPairSampler.sample` needs (its length)."""
 
@@ -45,17 +55,14 @@ class _Sized:
 
 
 def start_gaps(starts: torch.Tensor, block_ids: torch.Tensor, *, neighbours: int | None, pairs: int, seed: int,
-               parts: dict[str, slice]) -> dict[str, float]:
-    """Mean gap between the condition's and the target's start over ``pairs`` drawn pairs: z-scored, and per
-    observation part (metres -> cm)."""
+               metaworld: bool) -> dict[str, float]:
+    """Mean gap between the condition's and the target's start over ``pairs`` drawn pairs, per view of
+    :func:`start_views`."""
     sampler = BlockPairSampler(block_ids, neighbours=neighbours, starts=starts if neighbours else None)
     sampler._rng = torch.Generator().manual_seed(seed)  # the replay buffer's generator, as a seeded buffer sets it
     index, _ = sampler.sample(_Sized(block_ids.numel()), pairs)
-    z = standardized_starts(starts)
-    out = {"z": float((z[index[:, 0]] - z[index[:, 1]]).norm(dim=-1).mean())}
-    for name, part in parts.items():
-        out[name] = float((starts[index[:, 0], part] - starts[index[:, 1], part]).norm(dim=-1).mean() * 100)
-    return out
+    return {name: float((view[index[:, 0]] - view[index[:, 1]]).norm(dim=-1).mean())
+            for name, view in start_views(starts, reference=starts, metaworld=metaworld).items()}
 
 
 def measure(run: Path, *, neighbours: list[int], pairs: int) -> dict:
@@ -67,11 +74,10 @@ def measure(run: Path, *, neighbours: list[int], pairs: int) -> dict:
     if block_ids.numel() != trajs.batch_size[0]:
         raise ValueError(f"{run}: blocks.pt holds {block_ids.numel()} trajectories, its dataset {trajs.batch_size[0]}")
     starts = trajs.get("observation")[:, 0].float()
-    parts = METAWORLD_PARTS if env_kind(name) == "metaworld" else {}
-    gaps = {"uniform": start_gaps(starts, block_ids, neighbours=None, pairs=pairs, seed=int(cfg.seed), parts=parts)}
+    kw = {"pairs": pairs, "seed": int(cfg.seed), "metaworld": env_kind(name) == "metaworld"}
+    gaps = {"uniform": start_gaps(starts, block_ids, neighbours=None, **kw)}
     for m in neighbours:
-        gaps[f"neighbours_{m}"] = start_gaps(starts, block_ids, neighbours=m, pairs=pairs, seed=int(cfg.seed),
-                                             parts=parts)
+        gaps[f"neighbours_{m}"] = start_gaps(starts, block_ids, neighbours=m, **kw)
     return {"env": name, "seed": int(cfg.seed), "block_sizes": torch.bincount(block_ids).tolist(),
             "pair_neighbours_of_run": cfg.diffuser.get("pair_neighbours"), "mean_start_gap": gaps}
 

@@ -154,7 +154,7 @@ def test_pair_starts_measures_closer_starts_for_start_matched_pairs():
     starts[:, 4:7] = torch.rand(60, 3, generator=g) * 0.1
     starts[:, 36:39] = torch.rand(60, 3, generator=g) * 0.1
     ids = torch.arange(60) % 3
-    kw = dict(pairs=4000, seed=0, parts=bench.METAWORLD_PARTS)
+    kw = dict(pairs=4000, seed=0, metaworld=True)
     uniform = bench.start_gaps(starts, ids, neighbours=None, **kw)
     nearest = bench.start_gaps(starts, ids, neighbours=1, **kw)
     assert set(uniform) == {"z", "hand_cm", "object_cm", "goal_cm"} and uniform["hand_cm"] == 0.0
