@@ -79,6 +79,8 @@ from torchrl_ftb.envs import (
 from torchrl_ftb.flow import FlowToBetter, check_flow_options, true_return_score
 from torchrl_ftb.policy import (
     PathTracker,
+    check_bc_options,
+    check_evaluation_options,
     evaluate_policy,
     fit_path_tracker,
     load_bc_checkpoint,
@@ -473,13 +475,18 @@ def flow_options(cfg: DictConfig) -> dict[str, Any]:
 
 
 def check_policy_options(cfg: DictConfig) -> None:
-    """BC's and the evaluation's numbers, checked at start (they are used after the diffuser's training)."""
-    for key, low, strict in (("bc.steps", 0, False), ("bc.batch_size", 1, False), ("bc.lr", 0, True),
-                             ("bc.weight_decay", 0, False), ("eval.num_episodes", 1, False),
-                             ("eval.num_envs", 1, False), ("eval.max_steps", 1, False)):
-        value = OmegaConf.select(cfg, key)
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not (value > low if strict else value >= low):
-            raise ValueError(f"{key}={value!r}: must be {'>' if strict else '>='} {low}")
+    """BC's and the evaluation's numbers, checked at start (they are used after the diffuser's training) by the
+    library's own checks (:func:`check_bc_options`, :func:`check_evaluation_options`)."""
+    for section, check, keys in (("bc", check_bc_options, ("steps", "batch_size", "lr", "weight_decay")),
+                                 ("eval", check_evaluation_options, ("num_episodes", "num_envs", "max_steps"))):
+        values = {key: OmegaConf.select(cfg, f"{section}.{key}") for key in keys}
+        for key, value in values.items():
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise ValueError(f"{section}.{key}={value!r}: must be a number")
+        try:
+            check(**values)
+        except ValueError as err:
+            raise ValueError(f"{section}.*: {err}") from None
 
 
 def stage_flow(cfg, run: RunDir, trajs, scores, block_ids, sampler, model, true_reward_fn, logger) -> dict:

@@ -134,3 +134,25 @@ def test_bc_rejects_bad_transitions():
         train_bc(actor, TensorDict({"observation": torch.zeros(4, 3)}, [4]), steps=1, progress=False)
     with pytest.raises(ValueError, match=r"\[T\]"):
         train_bc(actor, make_toy_dataset(num_trajectories=2, horizon=4), steps=1, progress=False)
+
+
+@pytest.mark.parametrize("kwargs, message", [({"steps": -1}, "steps must be >= 0"),
+                                             ({"batch_size": 0}, "batch_size must be >= 1"),
+                                             ({"lr": 0.0}, "lr must be > 0"),
+                                             ({"weight_decay": -1e-3}, "weight_decay must be >= 0")])
+def test_bc_refuses_bad_numbers_before_touching_data(kwargs, message):
+    actor = make_bc_actor(3, 2, hidden=(4,))
+    before = [p.clone() for p in actor.parameters()]
+    with pytest.raises(ValueError, match=f"train_bc: {message}"):
+        train_bc(actor, TensorDict({"observation": torch.zeros(4, 3), "action": torch.zeros(4, 2)}, [4]),
+                 progress=False, **{"steps": 1, **kwargs})
+    assert all(torch.equal(a, b) for a, b in zip(before, actor.parameters()))
+
+
+@pytest.mark.parametrize("name", ["num_episodes", "num_envs", "max_steps"])
+def test_evaluate_refuses_bad_numbers_before_building_an_env(name):
+    def no_env():
+        raise AssertionError("the env must not be built")
+
+    with pytest.raises(ValueError, match=f"evaluate_policy: {name} must be >= 1, got 0"):
+        evaluate_policy(no_env, make_bc_actor(3, 2, hidden=(4,)), **{name: 0})

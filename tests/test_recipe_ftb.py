@@ -215,10 +215,10 @@ def test_bad_config_is_a_clear_error(tmp_path):
                               ("flow.early_stop_fraction=1.5", r"early_stop_fraction must be in \[0, 1\]"),
                               ("flow.candidates=0", "candidates must be >= 1"),
                               ("flow.ensemble_rule=all", "needs a ScoreModel ensemble"),
-                              ("bc.batch_size=0", "bc.batch_size=0: must be >= 1"),
-                              ("bc.lr=0", "bc.lr=0: must be > 0"),
-                              ("bc.steps=many", "bc.steps='many': must be >= 0"),
-                              ("eval.num_episodes=0", "eval.num_episodes=0: must be >= 1"),
+                              ("bc.batch_size=0", r"bc.\*: train_bc: batch_size must be >= 1, got 0"),
+                              ("bc.lr=0", "train_bc: lr must be > 0"),
+                              ("bc.steps=many", "bc.steps='many': must be a number"),
+                              ("eval.num_episodes=0", r"eval.\*: evaluate_policy: num_episodes must be >= 1"),
                               ("diffuser.pair_neighbours=0", "diffuser.pair_neighbours=0: must be null or an integer")):
         with pytest.raises(ValueError, match=message):
             recipe.run(_cfg(tmp_path / "f", override))

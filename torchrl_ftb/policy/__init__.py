@@ -6,8 +6,8 @@ from torchrl_ftb.policy.actor import (
     make_bc_actor_for,
     observation_statistics,
 )
-from torchrl_ftb.policy.bc import load_bc_checkpoint, make_transition_buffer, train_bc
-from torchrl_ftb.policy.evaluate import episode_statistics, evaluate_policy
+from torchrl_ftb.policy.bc import check_bc_options, load_bc_checkpoint, make_transition_buffer, train_bc
+from torchrl_ftb.policy.evaluate import check_evaluation_options, episode_statistics, evaluate_policy
 from torchrl_ftb.policy.inverse_dynamics import TRACKED_DIMS, PathTracker, fit_path_tracker
 
 __all__ = [
@@ -15,6 +15,8 @@ __all__ = [
     "PathTracker",
     "TRACKED_DIMS",
     "SquashedMLP",
+    "check_bc_options",
+    "check_evaluation_options",
     "episode_statistics",
     "evaluate_policy",
     "fit_path_tracker",

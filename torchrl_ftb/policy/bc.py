@@ -92,6 +92,32 @@ def load_bc_checkpoint(path: str | os.PathLike, actor: TensorDictModule) -> dict
     return ckpt
 
 
+def check_bc_options(*, steps: int, batch_size: int = 1024, lr: float = 1e-4, weight_decay: float = 1e-3) -> None:
+    """Check :func:`train_bc`'s numbers (same names and defaults) without training.
+
+    A recipe calls it before any training, so a bad BC option fails in seconds instead of after the
+    score model's and the diffuser's training; :func:`train_bc` calls it too.
+
+    Raises:
+        ValueError: naming the first option out of range.
+
+    Example:
+        >>> check_bc_options(steps=10_000, batch_size=1024, lr=1e-4, weight_decay=1e-3)
+        >>> check_bc_options(steps=100, lr=0.0)
+        Traceback (most recent call last):
+        ...
+        ValueError: train_bc: lr must be > 0, got 0.0
+    """
+    if steps < 0:
+        raise ValueError(f"train_bc: steps must be >= 0, got {steps}")
+    if batch_size < 1:
+        raise ValueError(f"train_bc: batch_size must be >= 1, got {batch_size}")
+    if not lr > 0:
+        raise ValueError(f"train_bc: lr must be > 0, got {lr}")
+    if not weight_decay >= 0:
+        raise ValueError(f"train_bc: weight_decay must be >= 0, got {weight_decay}")
+
+
 def train_bc(
     actor: TensorDictModule,
     transitions: TensorDictBase | ReplayBuffer,
@@ -137,10 +163,10 @@ def train_bc(
         ``{"steps", "loss" (mean of the last logging window), "start_step", "evaluations"}``.
 
     Raises:
-        ValueError: bad arguments, or a checkpoint that is corrupt or does not fit the actor.
+        ValueError: bad arguments (:func:`check_bc_options`), or a checkpoint that is corrupt or does not fit
+            the actor.
     """
-    if steps < 0 or batch_size < 1:
-        raise ValueError(f"train_bc: steps must be >= 0 and batch_size >= 1, got {steps}, {batch_size}")
+    check_bc_options(steps=steps, batch_size=batch_size, lr=lr, weight_decay=weight_decay)
     torch.manual_seed(int(seed))
     if device is None:
         device = next(actor.parameters()).device

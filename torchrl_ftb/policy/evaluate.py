@@ -55,6 +55,27 @@ def episode_statistics(rollout: TensorDictBase) -> dict[str, torch.Tensor]:
     return out
 
 
+def check_evaluation_options(*, num_episodes: int = 10, num_envs: int = 1, max_steps: int = 1000) -> None:
+    """Check :func:`evaluate_policy`'s numbers (same names and defaults) without building an env.
+
+    A recipe calls it before any training, so a bad evaluation option fails in seconds instead of after
+    training; :func:`evaluate_policy` calls it too.
+
+    Raises:
+        ValueError: naming the first option out of range.
+
+    Example:
+        >>> check_evaluation_options(num_episodes=50, num_envs=5, max_steps=500)
+        >>> check_evaluation_options(num_episodes=0)
+        Traceback (most recent call last):
+        ...
+        ValueError: evaluate_policy: num_episodes must be >= 1, got 0
+    """
+    for name, value in (("num_episodes", num_episodes), ("num_envs", num_envs), ("max_steps", max_steps)):
+        if value < 1:
+            raise ValueError(f"evaluate_policy: {name} must be >= 1, got {value}")
+
+
 def evaluate_policy(
     make_env: Callable[[], EnvBase],
     actor: TensorDictModule,
@@ -86,12 +107,12 @@ def evaluate_policy(
         ``{"num_episodes", "return_mean", "return_std", "length_mean"}`` plus
         ``"success_rate"`` if the env reports ``success`` and ``"normalized_score"``,
         ``"normalized_score_std"`` if ``normalized_score_fn`` is given.
+
+    Raises:
+        ValueError: numbers out of range (:func:`check_evaluation_options`), or ``stop_on_success`` on an env
+            without a ``success`` entry.
     """
-    if num_episodes < 1 or num_envs < 1 or max_steps < 1:
-        raise ValueError(
-            f"evaluate_policy: num_episodes, num_envs and max_steps must be >= 1, "
-            f"got {num_episodes}, {num_envs}, {max_steps}"
-        )
+    check_evaluation_options(num_episodes=num_episodes, num_envs=num_envs, max_steps=max_steps)
     num_envs = min(num_envs, num_episodes)
     env = make_env() if num_envs == 1 else SerialEnv(num_envs, make_env)
     if stop_on_success:
