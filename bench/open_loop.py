@@ -13,7 +13,8 @@ Usage::
     python bench/open_loop.py --summarize bench/results/open_loop_*.json bench/results/table1_v2_x/ftb__*.json
 
 ``--summarize`` prints one Markdown row per run of this bench's results files, or of table1 cell files whose
-run had the recipe's ``analysis.open_loop`` (policy success then in the last column).
+run had the recipe's ``analysis.open_loop`` (policy success then in the last column; a locomotion cell's reading,
+:func:`torchrl_ftb.analysis.locomotion_open_loop_improvement`, with its D4RL-normalised score there).
 """
 from __future__ import annotations
 
@@ -68,20 +69,26 @@ def _with_sample_summary(entry: dict) -> dict:
 
 
 def summary_row(label: str, entry: dict, *, policy: float | None = None) -> str:
-    """One Markdown row (:data:`SUMMARY_HEADER`) of an :func:`open_loop` entry (or the recipe's ``analysis.open_loop``)."""
-    entry = _with_sample_summary(entry)
-    imp = entry["improvement"][f"stop_rule_{int(entry.get('horizon', 500))}"]
-    c, r = imp["claimed"], imp["replayed"]
+    """One Markdown row (:data:`SUMMARY_HEADER`) of an :func:`open_loop` entry (or the recipe's ``analysis.open_loop``;
+    on locomotion, where every trajectory is replayed from its own start and returns are plain, the start and
+    success columns are "own start" and "—")."""
     n = entry["num_generated"]
     fmt = lambda v: "—" if v is None else f"{v:.0f}"  # noqa: E731
     cm = lambda v: "—" if v is None else f"{100 * v:.1f} cm"  # noqa: E731
-    hand = (f"{entry['start_hand_object_median']:.3f} vs {entry['data_start_hand_object_median']:.3f}"
-            if n and "start_hand_object_median" in entry else "—")
-    start = f"{_pct(entry.get('start_within_tolerance'))} ({cm(entry.get('start_distance_median'))})" if n else "—"
-    sample = (f"{fmt(entry.get('claimed_stop_rule_mean_generated'))} → {fmt(entry.get('replayed_stop_rule_mean_generated'))}"
-              if n else "—")
-    return (f"| {label} | {entry['env']} s{entry['seed']} | {n} | {start} | {hand} | {sample} | "
-            f"{_pct(entry.get('replay_success_rate')) if n else '—'} | "
+    if "horizon" in entry and entry["horizon"] is None:  # locomotion_open_loop_improvement
+        imp, column = entry["improvement"]["plain"], "plain"
+        start, hand, success = "own start", "—", "—"
+    else:
+        entry = _with_sample_summary(entry)
+        imp, column = entry["improvement"][f"stop_rule_{int(entry.get('horizon', 500))}"], "stop_rule"
+        hand = (f"{entry['start_hand_object_median']:.3f} vs {entry['data_start_hand_object_median']:.3f}"
+                if n and "start_hand_object_median" in entry else "—")
+        start = f"{_pct(entry.get('start_within_tolerance'))} ({cm(entry.get('start_distance_median'))})" if n else "—"
+        success = _pct(entry.get("replay_success_rate")) if n else "—"
+    c, r = imp["claimed"], imp["replayed"]
+    sample = (f"{fmt(entry.get(f'claimed_{column}_mean_generated'))} → "
+              f"{fmt(entry.get(f'replayed_{column}_mean_generated'))}" if n else "—")
+    return (f"| {label} | {entry['env']} s{entry['seed']} | {n} | {start} | {hand} | {sample} | {success} | "
             f"{c['true_return_mean_before']:.0f} → {c['true_return_mean_after']:.0f} / "
             f"**{r['true_return_mean_before']:.0f} → {r['true_return_mean_after']:.0f}** | "
             f"{c['true_return_max_before']:.0f} → {c['true_return_max_after']:.0f} / "
@@ -103,7 +110,9 @@ def summarize(paths: list[Path]) -> str:
             if entry is None:
                 raise SystemExit(f"{path}: neither this bench's results nor a run with analysis.open_loop")
             entry = {"env": metrics["env"], "seed": metrics["seed"], **entry}
-            rows.append(summary_row(Path(path).parent.name, entry, policy=metrics["eval"].get("success_rate")))
+            ev = metrics["eval"]  # Meta-World: success rate; locomotion: D4RL-normalised score
+            rows.append(summary_row(Path(path).parent.name, entry,
+                                    policy=ev.get("success_rate", ev.get("normalized_score"))))
     return "\n".join(rows)
 
 

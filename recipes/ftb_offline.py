@@ -44,6 +44,7 @@ from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDict, TensorDictBase
 
 from torchrl_ftb.analysis import (
+    locomotion_open_loop_improvement,
     novelty,
     open_loop_improvement,
     plot_flow_curves,
@@ -596,28 +597,38 @@ def stage_bc(cfg, run: RunDir, improved, device, logger):
 
 def open_loop_analysis(cfg: DictConfig, run: RunDir, flow: dict, trajs: TensorDictBase, meta: dict, *,
                        progress: bool) -> dict | None:
-    """``analysis.open_loop``: the flow's improvement in the simulator (generated Meta-World data only, else None).
+    """``analysis.open_loop``: the flow's improvement in the simulator (generated Meta-World data and locomotion,
+    else None).
 
-    Replays the final set's generated trajectories open loop from their nearest dataset start
-    (:func:`torchrl_ftb.analysis.open_loop_improvement`), writes the per-sample numbers to
-    ``open_loop.json`` and a claimed-vs-replayed scatter to ``plots/``, and returns the summary.
+    Replays the final set's generated trajectories open loop: on Meta-World from their nearest dataset start
+    (:func:`torchrl_ftb.analysis.open_loop_improvement`), on locomotion every trajectory from the state of its own
+    first observation (:func:`torchrl_ftb.analysis.locomotion_open_loop_improvement`). Writes the per-sample
+    numbers to ``open_loop.json`` and a claimed-vs-replayed scatter to ``plots/``, and returns the summary.
     """
     if not bool(cfg.get("analysis", {}).get("open_loop", False)):
         return None
-    if meta.get("domain") != "metaworld" or "per_trajectory" not in meta:
-        return None  # no goals and starts to replay from (toy, locomotion, D4RL/Minari files)
-    horizon = _optional_int(cfg.flow.get("true_return_horizon")) or int(cfg.env.max_episode_steps)
-    out = open_loop_improvement(flow["trajectories"], flow["original"], torch.as_tensor(flow["source_step"]) > 0,
-                                trajs, meta, task=str(cfg.env.name), horizon=horizon,
-                                original_rows=flow.get("original_indices"), progress=progress)
+    source = torch.as_tensor(flow["source_step"]) > 0
+    if env_kind(cfg.env.name) == "locomotion":
+        out = locomotion_open_loop_improvement(flow["trajectories"], flow["original"], source,
+                                               env_name=str(cfg.env.name), progress=progress)
+        column, horizon_text, highlight, highlight_label = "plain", "", "replay_terminated", "the env ends the replay early"
+    elif meta.get("domain") == "metaworld" and "per_trajectory" in meta:
+        horizon = _optional_int(cfg.flow.get("true_return_horizon")) or int(cfg.env.max_episode_steps)
+        out = open_loop_improvement(flow["trajectories"], flow["original"], source, trajs, meta,
+                                    task=str(cfg.env.name), horizon=horizon,
+                                    original_rows=flow.get("original_indices"), progress=progress)
+        column, horizon_text = "stop_rule", f" (stop rule, {horizon} steps)"
+        highlight, highlight_label = "replay_success", "replay succeeds"
+    else:
+        return None  # no goals and starts to replay from (toy, D4RL/Minari Meta-World files)
     samples = out.pop("samples")
     write_json(run.path / "open_loop.json", {**out, "samples": samples})
     if samples:
-        plot_scatter([s["claimed_stop_rule"] for s in samples], [s["replayed_stop_rule"] for s in samples],
+        plot_scatter([s[f"claimed_{column}"] for s in samples], [s[f"replayed_{column}"] for s in samples],
                      run.path / "plots" / "open_loop_claimed_vs_replayed.png",
-                     xlabel=f"return read off the generated states (stop rule, {horizon} steps)",
+                     xlabel=f"return read off the generated states{horizon_text}",
                      ylabel="return of the actions replayed in the simulator",
-                     highlight=[s["replay_success"] for s in samples], highlight_label="replay succeeds",
+                     highlight=[s[highlight] for s in samples], highlight_label=highlight_label,
                      title=f"generated trajectories in the final set — {cfg.env.name}")
     return out
 
@@ -686,19 +697,30 @@ def final_table(metrics: dict) -> list[tuple[str, str]]:
                      f"{fl['true_return_filled_stop_rule_mean_after']:.4g}"))
     if "open_loop" in metrics.get("analysis", {}):
         ol = metrics["analysis"]["open_loop"]
-        r = ol["improvement"][f"stop_rule_{int(ol['horizon'])}"]["replayed"]
-        rows.append((f"true return top-k replayed in the simulator (stop rule, {int(ol['horizon'])} steps): "
-                     "mean / max before -> after",
-                     f"{r['true_return_mean_before']:.4g} -> {r['true_return_mean_after']:.4g} / "
-                     f"{r['true_return_max_before']:.4g} -> {r['true_return_max_after']:.4g}"))
-        if ol["num_generated"]:
-            rows.append(("generated in final set, replayed: return claimed -> replayed (replays that succeed)",
-                         f"{ol['claimed_stop_rule_mean_generated']:.4g} -> {ol['replayed_stop_rule_mean_generated']:.4g}"
-                         f" ({_fmt(ol['replay_success_rate'])})"))
-            rows.append(("generated in final set, first step: off the nearest dataset start, m (median) / hand-object "
-                         "distance, m: sample vs that start",
-                         f"{_fmt(ol['start_distance_median'])} / {_fmt(ol['start_hand_object_median'])} vs "
-                         f"{_fmt(ol['data_start_hand_object_median'])}"))
+        if ol.get("horizon") is None:  # locomotion: plain returns, each trajectory replayed from its own first state
+            r = ol["improvement"]["plain"]["replayed"]
+            rows.append(("true return top-k replayed open loop in the simulator: mean / max before -> after",
+                         f"{r['true_return_mean_before']:.4g} -> {r['true_return_mean_after']:.4g} / "
+                         f"{r['true_return_max_before']:.4g} -> {r['true_return_max_after']:.4g}"))
+            if ol["num_generated"]:
+                rows.append(("generated in final set, replayed: return claimed -> replayed (replays the env ends "
+                             "early; median share of steps run)",
+                             f"{ol['claimed_plain_mean_generated']:.4g} -> {ol['replayed_plain_mean_generated']:.4g} "
+                             f"({_fmt(ol['replay_terminated_rate'])}; {_fmt(ol['replay_length_fraction_median'])})"))
+        else:
+            r = ol["improvement"][f"stop_rule_{int(ol['horizon'])}"]["replayed"]
+            rows.append((f"true return top-k replayed in the simulator (stop rule, {int(ol['horizon'])} steps): "
+                         "mean / max before -> after",
+                         f"{r['true_return_mean_before']:.4g} -> {r['true_return_mean_after']:.4g} / "
+                         f"{r['true_return_max_before']:.4g} -> {r['true_return_max_after']:.4g}"))
+            if ol["num_generated"]:
+                rows.append(("generated in final set, replayed: return claimed -> replayed (replays that succeed)",
+                             f"{ol['claimed_stop_rule_mean_generated']:.4g} -> "
+                             f"{ol['replayed_stop_rule_mean_generated']:.4g} ({_fmt(ol['replay_success_rate'])})"))
+                rows.append(("generated in final set, first step: off the nearest dataset start, m (median) / "
+                             "hand-object distance, m: sample vs that start",
+                             f"{_fmt(ol['start_distance_median'])} / {_fmt(ol['start_hand_object_median'])} vs "
+                             f"{_fmt(ol['data_start_hand_object_median'])}"))
     if "tracked" in metrics.get("analysis", {}):
         tr = metrics["analysis"]["tracked"]
         t, fid, gen = tr["tracked"], tr["fidelity"], tr["generated"]
@@ -755,7 +777,8 @@ def write_report(run: RunDir, metrics: dict, flow_stats: list[dict]) -> Path:
                   "\"replayed in the simulator\" rows are the simulator's own: recorded rewards for dataset "
                   "trajectories, open-loop replays of the generated ones' actions from their nearest dataset start "
                   "(`analysis.open_loop`, per-sample numbers in `open_loop.json`; BENCHMARKS.md, session 29: there "
-                  "the flow's gains vanish)."]
+                  "the flow's gains vanish). On locomotion every trajectory of both sets is replayed open loop from "
+                  "the state of its own first observation until its actions run out or the env ends it."]
     lines += ["", "## Flow steps", ""]
     if flow_stats:
         keys = list(flow_stats[0].keys())

@@ -93,11 +93,21 @@ def test_open_loop_summary_reads_bench_files_and_recipe_cells(tmp_path):
     cell.parent.mkdir()
     cell.write_text(json.dumps({"metrics": {"env": "drawer-open-v3", "seed": 4, "eval": {"success_rate": 0.5},
                                             "analysis": {"open_loop": ol}}}))
-    rows = bench.summarize([old, cell]).splitlines()
-    assert len(rows) == 4 and rows[1].count("|") == rows[0].count("|")
+    # a locomotion cell: plain returns, every trajectory replayed from its own start, the policy's D4RL score
+    loco = tmp_path / "loco" / "ftb__hopper-medium-replay__return__seed0.json"
+    loco.parent.mkdir()
+    loco.write_text(json.dumps({"metrics": {"env": "hopper", "seed": 0, "eval": {"normalized_score": 7.5},
+                                            "analysis": {"open_loop": {
+                                                "num_generated": 3, "horizon": None, "claimed_plain_mean_generated": 300.0,
+                                                "replayed_plain_mean_generated": 120.0,
+                                                "improvement": {"plain": improvement["stop_rule_500"]}}}}}))
+    rows = bench.summarize([old, cell, loco]).splitlines()
+    assert len(rows) == 5 and rows[1].count("|") == rows[0].count("|") == rows[4].count("|")
     assert rows[2] == ("| open_loop_old | drawer-open-v3 s4 | 2 | 50% (0.5 cm) | — | 30 → 25 | 50% | "
                        "10 → 12 / **10 → 9** | 20 → 20 / **20 → 20** | — |")
     assert rows[3].startswith("| cells | drawer-open-v3 s4 | 0 | — |") and rows[3].endswith("| 0.50 |")
+    assert rows[4] == ("| loco | hopper s0 | 3 | own start | — | 300 → 120 | — | "
+                       "10 → 12 / **10 → 9** | 20 → 20 / **20 → 20** | 7.50 |")
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps({"metrics": {"env": "x", "analysis": {}}}))
     with pytest.raises(SystemExit, match="analysis.open_loop"):

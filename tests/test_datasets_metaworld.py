@@ -293,7 +293,7 @@ def test_open_loop_bench_replays_recorded_trajectories_to_the_returns_read_off_t
     assert table["generated in final set, replayed: return claimed -> replayed (replays that succeed)"].endswith("(0.5)")
     assert table["generated in final set, first step: off the nearest dataset start, m (median) / hand-object "
                  "distance, m: sample vs that start"].startswith("0 / ")
-    # off: no replay; data without goals and starts (toy, locomotion): none either
+    # off: no replay; data without goals and starts (toy): none either (locomotion: tests/test_locomotion.py)
     assert recipe.open_loop_analysis(OmegaConf.merge(cfg, {"analysis": {"open_loop": False}}), run, flow, td, meta,
                                      progress=False) is None
     assert recipe.open_loop_analysis(cfg, run, flow, td, {"domain": "toy"}, progress=False) is None

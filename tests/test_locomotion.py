@@ -188,3 +188,76 @@ def test_make_medium_expert_dataset_groups_and_cache(tmp_path):
                                          cache_dir=tmp_path, progress=False)
     assert meta2["path"] == meta["path"] and torch.equal(td2["observation"], td["observation"])
     assert meta2["generation_seconds"] == meta["generation_seconds"]
+
+
+def _recorded_and_a_falling_claim() -> tuple[TensorDict, TensorDict, float]:
+    """A recorded hopper trajectory (random actions: it falls within ~15 steps), padded to 200 steps, and a
+    "generated" one that claims to stand at its start for 200 steps while pushing full torque: every transition's
+    own reward is healthy, but its actions make the hopper fall in ~20 steps. Returns (final set, top-k, recorded
+    return)."""
+    from torchrl_ftb.envs import make_locomotion_env
+
+    horizon = 200
+    rec = make_locomotion_env("hopper", seed=0).rollout(horizon)
+    n = rec.batch_size[0]
+    recorded = TensorDict({"observation": torch.zeros(1, horizon, 11), "action": torch.zeros(1, horizon, 3),
+                           "mask": torch.zeros(1, horizon, dtype=torch.bool)}, [1, horizon])
+    recorded["observation"][0, :n], recorded["action"][0, :n], recorded["mask"][0, :n] = (
+        rec["observation"], rec["action"], True)
+    standing = TensorDict({"observation": rec["observation"][:1].expand(horizon, 11).unsqueeze(0).clone(),
+                           "action": torch.ones(1, horizon, 3), "mask": torch.ones(1, horizon, dtype=torch.bool)},
+                          [1, horizon])
+    return torch.cat([recorded, standing]), recorded, float(rec["next", "reward"].sum())
+
+
+def test_locomotion_open_loop_replays_recorded_and_catches_a_claimed_path_that_falls():
+    from torchrl_ftb.analysis import locomotion_open_loop_improvement
+
+    final, recorded, recorded_return = _recorded_and_a_falling_claim()
+    out = locomotion_open_loop_improvement(final, recorded, torch.tensor([False, True]), env_name="hopper")
+    imp = out["improvement"]["plain"]
+    assert imp["replayed"]["true_return_mean_before"] == pytest.approx(recorded_return, abs=1e-3)
+    assert imp["claimed"]["true_return_mean_before"] == pytest.approx(recorded_return, abs=1e-3)
+    (sample,) = out["samples"]
+    assert sample["replay_terminated"] and sample["replay_length"] < 50 and sample["length"] == 200
+    assert sample["claimed_plain"] > 150 and sample["replayed_plain"] < 0.5 * sample["claimed_plain"]
+    assert imp["claimed"]["true_return_max_after"] == pytest.approx(sample["claimed_plain"])
+    assert imp["replayed"]["true_return_max_after"] < imp["claimed"]["true_return_max_after"]
+    assert out["replay_terminated_rate"] == 1.0 and out["num_generated"] == 1
+    with pytest.raises(ValueError, match=r"generated has shape \[1\], expected \[2\]"):
+        locomotion_open_loop_improvement(final, recorded, torch.tensor([True]), env_name="hopper")
+
+
+def test_recipe_open_loop_analysis_on_locomotion(tmp_path):
+    import types
+    from pathlib import Path
+
+    from omegaconf import OmegaConf
+
+    from torchrl_ftb.analysis import locomotion_open_loop_improvement
+    from torchrl_ftb.testing import load_script
+
+    final, recorded, _ = _recorded_and_a_falling_claim()
+    out = locomotion_open_loop_improvement(final, recorded, torch.tensor([False, True]), env_name="hopper")
+    recipe = load_script(Path(__file__).resolve().parents[1] / "recipes" / "ftb_offline.py", "recipe_open_loop_loco")
+    cfg = OmegaConf.create({"env": {"name": "hopper"}, "flow": {}, "analysis": {"open_loop": True}})
+    run = types.SimpleNamespace(path=tmp_path)
+    flow = {"trajectories": final, "original": recorded, "source_step": torch.tensor([0, 2])}
+    ours = recipe.open_loop_analysis(cfg, run, flow, None, {"domain": "locomotion"}, progress=False)
+    assert ours["improvement"] == out["improvement"] and "samples" not in ours
+    saved = json.loads((tmp_path / "open_loop.json").read_text())
+    assert [s["replay_terminated"] for s in saved["samples"]] == [True]
+    assert (tmp_path / "plots" / "open_loop_claimed_vs_replayed.png").stat().st_size > 0
+    flow_summary = {"score_mean_before": 0.0, "score_mean_after": 1.0, "flow_steps_run": 1, "flow_steps_planned": 1,
+                    "fraction_generated_in_final": 0.5}
+    table = dict(recipe.final_table({"env": "hopper", "preset": "cpu", "teacher": "return", "wall_time_s": 1.0,
+                                     "eval": {"return_mean": 0.0, "return_std": 0.0, "length_mean": 1.0},
+                                     "flow": flow_summary, "score_quality": {}, "analysis": {"open_loop": ours}}))
+    r = out["improvement"]["plain"]["replayed"]
+    assert table["true return top-k replayed open loop in the simulator: mean / max before -> after"] == (
+        f"{r['true_return_mean_before']:.4g} -> {r['true_return_mean_after']:.4g} / "
+        f"{r['true_return_max_before']:.4g} -> {r['true_return_max_after']:.4g}")
+    row = table["generated in final set, replayed: return claimed -> replayed (replays the env ends early; median "
+                "share of steps run)"]
+    assert row.startswith(f"{ours['claimed_plain_mean_generated']:.4g} -> ") and row.endswith(
+        f"(1; {ours['replay_length_fraction_median']:.4g})")

@@ -3,6 +3,7 @@ from torchrl_ftb.analysis.metrics import dynamics_error, improvement, novelty, t
 from torchrl_ftb.analysis.plots import plot_flow_curves, plot_histograms, plot_scatter, save_figure
 from torchrl_ftb.analysis.replay import (
     episode_jobs,
+    locomotion_open_loop_improvement,
     match_rows,
     metaworld_state_returns,
     nearest_start,
@@ -16,6 +17,7 @@ __all__ = [
     "dynamics_error",
     "episode_jobs",
     "improvement",
+    "locomotion_open_loop_improvement",
     "match_rows",
     "metaworld_state_returns",
     "nearest_start",

@@ -19,6 +19,7 @@ from torchrl_ftb.envs.locomotion import (
     locomotion_true_reward,
     make_locomotion_env,
     oracle_step,
+    replay_locomotion_actions,
 )
 from torchrl_ftb.envs.metaworld import (
     METAWORLD_MAX_EPISODE_STEPS,
@@ -87,6 +88,7 @@ __all__ = [
     "normalized_score_fn",
     "observation_layout",
     "oracle_step",
+    "replay_locomotion_actions",
     "physics_limit",
     "scripted_policy",
     "true_reward_fn",

@@ -5,6 +5,7 @@ does not affect the dynamics), so the simulator state can be rebuilt from an obs
 :func:`oracle_step` steps it, :func:`locomotion_true_reward` gives the exact reward of
 ``(s, a)``, so ``torchrl_ftb.analysis.dynamics_error(trajs, partial(oracle_step, env))`` checks
 generated transitions against the simulator.
+:func:`replay_locomotion_actions` runs a trajectory's actions open loop from its first observation.
 One caveat: Hopper and Walker2d clip the velocities in the observation to ±10, so a state
 whose true velocity exceeded that is rebuilt with the clipped value.
 
@@ -32,6 +33,7 @@ __all__ = [
     "d4rl_normalized_score",
     "oracle_step",
     "locomotion_true_reward",
+    "replay_locomotion_actions",
 ]
 
 LOCOMOTION_ENVS = {"hopper": "Hopper-v5", "walker2d": "Walker2d-v5", "halfcheetah": "HalfCheetah-v5"}
@@ -179,3 +181,48 @@ def locomotion_true_reward(env_name: str, observation: torch.Tensor, action: tor
         _, reward, *_ = u.step(act[i])
         out[i] = reward
     return torch.from_numpy(out).float().reshape(*lead, 1)
+
+
+def replay_locomotion_actions(env_name: str, first_observation: torch.Tensor,
+                              actions: list[torch.Tensor | np.ndarray]) -> list[dict[str, np.ndarray | bool]]:
+    """Open-loop replays: each action sequence run from the state rebuilt from its first observation.
+
+    The env's own ``step`` gives the rewards and its termination (Hopper / Walker2d end when unhealthy); a
+    replay stops there or when its actions run out. Actions are clipped to the action box ``[-1, 1]``.
+
+    Args:
+        env_name: locomotion env (see :func:`locomotion_env_id`).
+        first_observation: ``[N, obs_dim]`` start of each trajectory.
+        actions: ``N`` sequences ``[L_i, act_dim]``.
+
+    Returns:
+        One dict per trajectory: ``"reward"`` ``[n_i]``, ``"observation"`` ``[n_i + 1, obs_dim]`` (the start,
+        then each next observation), ``"terminated"`` (the env ended it, at its last step ``n_i``).
+
+    Example:
+        >>> env = make_locomotion_env("hopper", seed=0)
+        >>> td = env.rollout(5)
+        >>> ep = replay_locomotion_actions("hopper", td["observation"][:1], [td["action"]])[0]
+        >>> bool(np.allclose(ep["reward"], td["next", "reward"].squeeze(-1).numpy(), atol=1e-4)), ep["terminated"]
+        (True, False)
+    """
+    env_id = locomotion_env_id(env_name)
+    u = _sim(env_id)
+    obs, _ = _flat(first_observation, "first_observation")
+    if len(actions) != len(obs):
+        raise ValueError(f"replay_locomotion_actions: {len(obs)} first observations but {len(actions)} action sequences")
+    out = []
+    for o, a in zip(obs, actions):
+        act, _ = _flat(a, "actions")
+        _check_dims(u, o[None], act[:1] if len(act) else np.zeros((1, u.model.nu)), env_id)
+        _set_from_obs(u, o)
+        rewards, states, terminated = [], [u._get_obs()], False
+        for step in act:
+            nxt, reward, terminated, _, _ = u.step(np.clip(step, -1.0, 1.0))
+            rewards.append(reward)
+            states.append(nxt)
+            if terminated:
+                break
+        out.append({"reward": np.asarray(rewards, np.float64), "observation": np.stack(states),
+                    "terminated": bool(terminated)})
+    return out
