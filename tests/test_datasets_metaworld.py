@@ -242,7 +242,8 @@ def _fake_run_dir(td, cache, tmp_path):
 
 
 @pytest.mark.integration
-def test_open_loop_bench_replays_recorded_trajectories_to_the_returns_read_off_their_states(tiny_dataset, tmp_path):
+def test_open_loop_bench_replays_recorded_trajectories_to_the_returns_read_off_their_states(tiny_dataset, tmp_path,
+                                                                                           report_rows):
     """bench/open_loop.py end to end on a run directory whose "generated" trajectories are recorded ones:
     the simulator's replay and the reward read off the states agree, and each starts at its own episode."""
     import json
@@ -283,11 +284,7 @@ def test_open_loop_bench_replays_recorded_trajectories_to_the_returns_read_off_t
     saved = json.loads((tmp_path / "open_loop.json").read_text())
     assert [s["start_row"] for s in saved["samples"]] == [0, 2]
     assert (tmp_path / "plots" / "open_loop_claimed_vs_replayed.png").stat().st_size > 0
-    flow_summary = {"score_mean_before": 0.0, "score_mean_after": 1.0, "flow_steps_run": 1, "flow_steps_planned": 1,
-                    "fraction_generated_in_final": 0.5}
-    table = dict(recipe.final_table({"env": "button-press-v3", "preset": "cpu", "teacher": "return", "wall_time_s": 1.0,
-                                     "eval": {"return_mean": 0.0, "return_std": 0.0, "length_mean": 1.0},
-                                     "flow": flow_summary, "score_quality": {}, "analysis": {"open_loop": ours}}))
+    table = report_rows(recipe, analysis={"open_loop": ours})
     row = table["true return top-k replayed in the simulator (stop rule, 150 steps): mean / max before -> after"]
     assert row.endswith(f"/ {imp['true_return_max_before']:.4g} -> {imp['true_return_max_after']:.4g}")
     assert table["generated in final set, replayed: return claimed -> replayed (replays that succeed)"].endswith("(0.5)")
@@ -306,7 +303,7 @@ def test_open_loop_bench_replays_recorded_trajectories_to_the_returns_read_off_t
 
 
 @pytest.mark.integration
-def test_tracked_replay_reads_both_sides_through_the_same_tracker(tiny_dataset, tmp_path):
+def test_tracked_replay_reads_both_sides_through_the_same_tracker(tiny_dataset, tmp_path, report_rows):
     """bench/tracked_replay.py (torchrl_ftb.analysis.tracked_improvement) and the recipe's analysis.tracked
     on a run directory whose "generated" trajectories are recorded ones: a generated path tracked from its
     own start is the same episode as its top-k twin, so top-k -> final is unchanged, and the fidelity
@@ -344,11 +341,7 @@ def test_tracked_replay_reads_both_sides_through_the_same_tracker(tiny_dataset, 
     ours = recipe.tracked_analysis(on, run, flow, td, meta, progress=False)
     assert ours["fidelity"] == out["fidelity"] and ours["tracked"] == out["tracked"] and "samples" not in ours
     assert len(json.loads((tmp_path / "tracked.json").read_text())["samples"]) == 2
-    table = dict(recipe.final_table({"env": "button-press-v3", "preset": "cpu", "teacher": "return", "wall_time_s": 1.0,
-                                     "eval": {"return_mean": 0.0, "return_std": 0.0, "length_mean": 1.0},
-                                     "flow": {"score_mean_before": 0.0, "score_mean_after": 1.0, "flow_steps_run": 1,
-                                              "flow_steps_planned": 1, "fraction_generated_in_final": 0.5},
-                                     "score_quality": {}, "analysis": {"tracked": ours}}))
+    table = report_rows(recipe, analysis={"tracked": ours})
     assert table["true return top-k tracked in closed loop (stop rule, 150 steps): mean / max before -> after"]
     assert "generated in final set, tracked: return claimed -> tracked (hand off its path, m, median)" in table
     assert recipe.tracked_analysis(on, run, flow, td, {"domain": "toy"}, progress=False) is None

@@ -228,7 +228,7 @@ def test_locomotion_open_loop_replays_recorded_and_catches_a_claimed_path_that_f
         locomotion_open_loop_improvement(final, recorded, torch.tensor([True]), env_name="hopper")
 
 
-def test_recipe_open_loop_analysis_on_locomotion(tmp_path):
+def test_recipe_open_loop_analysis_on_locomotion(tmp_path, report_rows):
     import types
     from pathlib import Path
 
@@ -248,11 +248,7 @@ def test_recipe_open_loop_analysis_on_locomotion(tmp_path):
     saved = json.loads((tmp_path / "open_loop.json").read_text())
     assert [s["replay_terminated"] for s in saved["samples"]] == [True]
     assert (tmp_path / "plots" / "open_loop_claimed_vs_replayed.png").stat().st_size > 0
-    flow_summary = {"score_mean_before": 0.0, "score_mean_after": 1.0, "flow_steps_run": 1, "flow_steps_planned": 1,
-                    "fraction_generated_in_final": 0.5}
-    table = dict(recipe.final_table({"env": "hopper", "preset": "cpu", "teacher": "return", "wall_time_s": 1.0,
-                                     "eval": {"return_mean": 0.0, "return_std": 0.0, "length_mean": 1.0},
-                                     "flow": flow_summary, "score_quality": {}, "analysis": {"open_loop": ours}}))
+    table = report_rows(recipe, analysis={"open_loop": ours}, env="hopper")
     r = out["improvement"]["plain"]["replayed"]
     assert table["true return top-k replayed open loop in the simulator: mean / max before -> after"] == (
         f"{r['true_return_mean_before']:.4g} -> {r['true_return_mean_after']:.4g} / "

@@ -340,7 +340,7 @@ def test_readme_main_command_composes_to_the_embedded_default():
     assert cfg.labels.horizon == cfg.score_model.horizon == 500 and cfg.flow.top_k == 200
 
 
-def test_physical_validity_checks_compose():
+def test_physical_validity_checks_compose(report_rows):
     """flow.max_frame_stack_error, flow.max_hand_model_error and flow.max_contactless_object_path: each
     rejects its own kind of broken Meta-World sample, all must pass, and none set means no extra check."""
     recipe = _recipe()
@@ -388,12 +388,7 @@ def test_physical_validity_checks_compose():
     assert v["hand_model_error_generated"] > 10 * v["hand_model_error_dataset"]
     assert v["contactless_object_path_dataset"] < 0.01 < 0.04 < v["contactless_object_path_generated"]
     assert v["max_hand_step_dataset"] < 0.02 < 0.05 < v["max_hand_step_generated"]
-    rows = dict(recipe.final_table({"env": "x", "preset": "cpu", "teacher": "return", "wall_time_s": 1.0,
-                                    "eval": {"return_mean": 0.0, "return_std": 0.0, "length_mean": 1.0},
-                                    "flow": {"score_mean_before": 0.0, "score_mean_after": 0.0,
-                                             "flow_steps_run": 1, "flow_steps_planned": 1,
-                                             "fraction_generated_in_final": 0.5},
-                                    "score_quality": {}, "analysis": {"validity": v}}))
+    rows = report_rows(recipe, analysis={"validity": v}, env="x")
     assert any(k.startswith("accepted samples: frame-stack") for k in rows)
     still = data.clone()
     still["observation"][..., 4:7] = 0.0  # an object that never moves: no reach to fit, NaN instead of a failed run
