@@ -30,6 +30,7 @@ import hydra
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from torchrl_ftb.analysis import locomotion_replays
 from torchrl_ftb.augmentation import AUGMENTATIONS, build_supplement, merge_datasets
 from torchrl_ftb.baselines import METHODS, LABEL_METHODS, run_baseline
 from torchrl_ftb.data import atomic_torch_save, atomic_write_text
@@ -104,6 +105,7 @@ def make_supplement(cfg: DictConfig, trajs, *, device, logger) -> tuple[Any, dic
     aug = cfg.augmentation
     if aug.kind == "none":
         return trajs, None
+    locomotion = env_kind(cfg.env.name) == "locomotion"  # its simulator state is rebuilt from an observation
     supplement, info = build_supplement(
         str(aug.kind), trajs, cache_dir=Path(str(aug.cache_dir)).expanduser().resolve(),
         diffuser=OmegaConf.to_container(aug.diffuser, resolve=True),
@@ -111,7 +113,8 @@ def make_supplement(cfg: DictConfig, trajs, *, device, logger) -> tuple[Any, dic
         synthetic={} if aug.synthetic.num_samples is None else {"num_samples": int(aug.synthetic.num_samples)},
         num_blocks=int(aug.num_blocks), seed=int(cfg.seed),
         true_reward_fn=true_reward_fn(cfg.env.name) if aug.true_reward else None,
-        oracle_step=functools.partial(oracle_step, cfg.env.name) if env_kind(cfg.env.name) == "locomotion" else None,
+        oracle_step=functools.partial(oracle_step, cfg.env.name) if locomotion else None,
+        replay_fn=(lambda t: locomotion_replays(str(cfg.env.name), t)[0]) if locomotion else None,
         device=device, logger=logger, progress=bool(cfg.progress),
     )
     merged = merge_datasets(trajs, supplement) if supplement.batch_size[0] else trajs
@@ -142,7 +145,8 @@ def _report(metrics: dict[str, Any]) -> str:
                   f"to the dataset's {aug['dataset_transitions']}.", "",
                   "| return | mean | max |", "|---|---|---|",
                   f"| dataset | {aug['dataset_return_mean']:.2f} | {aug['dataset_return_max']:.2f} |"]
-        for name, key in (("supplement, generated reward", "generated_return"), ("supplement, true reward", "true_return")):
+        for name, key in (("supplement, generated reward", "generated_return"), ("supplement, true reward", "true_return"),
+                          ("supplement, actions replayed open loop", "replayed_return")):
             if aug.get(f"{key}_mean") is not None:
                 lines.append(f"| {name} | {aug[f'{key}_mean']:.2f} | {aug[f'{key}_max']:.2f} |")
         if aug.get("dynamics_error_mean") is not None:

@@ -140,6 +140,13 @@ def test_build_supplement_is_cached_and_checked(supplements):
     again, info = build_supplement("ftb", data, **common)
     assert info["loaded"] and info["path"] == out["ftb"][1]["path"]
     assert torch.equal(again["observation"], out["ftb"][0]["observation"])
+    assert "replayed_return_mean" not in info
+    # a replay function (here a stand-in: twice the stored reward) is read for a cached supplement too
+    seen = []
+    _, replayed = build_supplement("ftb", data, **common, replay_fn=lambda t: seen.append(t) or 2 * true_return(t))
+    assert replayed["loaded"] and len(seen) == 1 and seen[0].batch_size == again.batch_size
+    assert replayed["replayed_return_mean"] == pytest.approx(2 * float(true_return(again).mean()), rel=1e-6)
+    assert replayed["replayed_return_max"] == pytest.approx(2 * float(true_return(again).max()), rel=1e-6)
     # a different setting never reuses the supplement: it lands in another directory
     changed = {**common, "flow": {**common["flow"], "threshold": 1.2}, "diffuser": {**common["diffuser"], "steps": 1}}
     assert build_supplement("ftb", data, **changed)[1]["path"] != info["path"]

@@ -4,6 +4,7 @@ from torchrl_ftb.analysis.plots import plot_flow_curves, plot_histograms, plot_s
 from torchrl_ftb.analysis.replay import (
     episode_jobs,
     locomotion_open_loop_improvement,
+    locomotion_replays,
     match_rows,
     metaworld_state_returns,
     nearest_start,
@@ -18,6 +19,7 @@ __all__ = [
     "episode_jobs",
     "improvement",
     "locomotion_open_loop_improvement",
+    "locomotion_replays",
     "match_rows",
     "metaworld_state_returns",
     "nearest_start",

@@ -273,6 +273,30 @@ def summarize_samples(samples: list[dict]) -> dict:
     return out
 
 
+def locomotion_replays(env_name: str, trajs: TensorDictBase) -> tuple[torch.Tensor, list[dict]]:
+    """Open-loop replays of locomotion trajectories (``observation``, ``action``, ``mask``; ``[N, H]``): each one's
+    actions, clipped to ``[-1, 1]``, from the state of its own first observation until they run out or the env ends
+    it (:func:`torchrl_ftb.envs.replay_locomotion_actions`).
+
+    Returns:
+        ``(returns float64 [N], episodes)``: the replays' plain returns and their per-step records.
+
+    Example:
+        >>> from torchrl_ftb.envs import make_locomotion_env
+        >>> td = make_locomotion_env("hopper", seed=0).rollout(8)
+        >>> trajs = td.select("observation", "action").unsqueeze(0)
+        >>> trajs["mask"] = torch.ones(1, 8, dtype=torch.bool)
+        >>> returns, _ = locomotion_replays("hopper", trajs)
+        >>> abs(float(returns[0]) - float(td["next", "reward"].sum())) < 1e-3
+        True
+    """
+    t = clip_actions(trajs.select("observation", "action", "mask").to("cpu").clone(), 1.0)
+    lengths = t["mask"].sum(-1).tolist()
+    episodes = replay_locomotion_actions(env_name, t["observation"][:, 0],
+                                         [t["action"][i, :n] for i, n in enumerate(lengths)])
+    return torch.tensor([float(ep["reward"].sum()) for ep in episodes], dtype=torch.float64), episodes
+
+
 def locomotion_open_loop_improvement(final: TensorDictBase, original: TensorDictBase, generated: torch.Tensor, *,
                                      env_name: str, progress: bool = False) -> dict:
     """The flow's improvement (original top-k -> final set) on locomotion, claimed per transition and replayed.
@@ -310,20 +334,14 @@ def locomotion_open_loop_improvement(final: TensorDictBase, original: TensorDict
     if generated.shape != final.batch_size[:1]:
         raise ValueError(f"locomotion_open_loop_improvement: generated has shape {list(generated.shape)}, "
                          f"expected [{final.batch_size[0]}] (one flag per final-set trajectory)")
-    keys = ("observation", "action", "mask")
-    sets = [clip_actions(t.select(*keys).to("cpu").clone(), 1.0) for t in (original, final)]
+    sets = [clip_actions(t.select("observation", "action", "mask").to("cpu").clone(), 1.0) for t in (original, final)]
     reward_fn = true_reward_fn(env_name)
     claimed = [masked_true_returns(t, reward_fn)[:, 0] for t in sets]
-    bar = tqdm(total=sum(t.batch_size[0] for t in sets), desc=f"{env_name} open-loop replays", disable=not progress)
     replayed, episodes = [], []
-    for t in sets:
-        lengths = t["mask"].sum(-1).tolist()
-        eps = replay_locomotion_actions(env_name, t["observation"][:, 0],
-                                        [t["action"][i, :n] for i, n in enumerate(lengths)])
-        bar.update(len(eps))
-        replayed.append(torch.tensor([float(ep["reward"].sum()) for ep in eps], dtype=torch.float64))
-        episodes.append(list(zip(lengths, eps)))
-    bar.close()
+    for t in tqdm(sets, desc=f"{env_name} open-loop replays (top-k, final set)", disable=not progress):
+        returns, eps = locomotion_replays(env_name, t)
+        replayed.append(returns)
+        episodes.append(list(zip(t["mask"].sum(-1).tolist(), eps)))
     gen_rows = generated.nonzero().squeeze(-1).tolist()
     samples = [{"length": int(n), "replay_length": len(ep["reward"]),
                 "replay_terminated": bool(ep["terminated"] and len(ep["reward"]) < n),
