@@ -4,7 +4,9 @@ The bench form of :func:`torchrl_ftb.analysis.open_loop_improvement` (the recipe
 final set, ``analysis.open_loop``; see that module for the method): for finished FTB run directories on
 generated Meta-World data, replay every generated trajectory of the final set (``checkpoints/flow.pt``)
 from its nearest dataset start, open loop, and compare the simulator's returns with the ones its states
-claim, original top-k -> final set. ``--no-hold`` stops each replay after the sample's last action
+claim, original top-k -> final set. On locomotion runs every trajectory of both sets is replayed from its own
+first state (:func:`torchrl_ftb.analysis.locomotion_open_loop_improvement`), and the top-k's own actions are
+replayed again with Gaussian noise added (``--action-noise``), to show how fragile open loop is on that data. ``--no-hold`` stops each replay after the sample's last action
 instead of holding still until the stop rule or the time limit.
 
 Usage::
@@ -23,6 +25,9 @@ import json
 import sys
 from pathlib import Path
 
+import torch
+from omegaconf import OmegaConf
+
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -31,7 +36,13 @@ sys.path.insert(0, str(ROOT / "bench"))
 from expert_headroom import load_metaworld_run  # noqa: E402
 from flow_generated import load_flow_sets, measure_runs, runs_from_args  # noqa: E402
 
-from torchrl_ftb.analysis import open_loop_improvement, summarize_samples  # noqa: E402
+from torchrl_ftb.analysis import (  # noqa: E402
+    locomotion_open_loop_improvement,
+    locomotion_replays,
+    open_loop_improvement,
+    summarize_samples,
+)
+from torchrl_ftb.envs import env_kind  # noqa: E402
 
 
 def load_flow(run: Path) -> tuple:
@@ -40,6 +51,35 @@ def load_flow(run: Path) -> tuple:
     cfg, data, meta = load_metaworld_run(run)
     ckpt, final, original, generated = load_flow_sets(run)
     return cfg, data, meta, final, original, generated, ckpt.get("original_indices")
+
+
+def action_noise_replays(env_name: str, trajs, noise: list[float], *, seed: int = 0) -> list[dict]:
+    """How fragile open loop is on this data: ``trajs``' own actions replayed from their own starts with Gaussian
+    noise of each std added (then clipped to the action box), one draw per std (seeded): mean return and the
+    share the env ends before the actions run out."""
+    generator = torch.Generator().manual_seed(seed)
+    lengths = trajs["mask"].sum(-1)
+    out = []
+    for std in noise:
+        noisy = trajs.select("observation", "action", "mask").clone()
+        noisy["action"] = noisy["action"] + std * torch.randn(noisy["action"].shape, generator=generator)
+        returns, episodes = locomotion_replays(env_name, noisy)
+        early = [ep["terminated"] and len(ep["reward"]) < int(n) for ep, n in zip(episodes, lengths)]
+        out.append({"action_noise_std": std, "return_mean": float(returns.mean()),
+                    "return_max": float(returns.max()), "terminated_early": sum(early) / len(early)})
+    return out
+
+
+def locomotion_open_loop(run: Path, *, noise: list[float], progress: bool) -> dict:
+    """:func:`torchrl_ftb.analysis.locomotion_open_loop_improvement` of a finished locomotion run's final set, and
+    the top-k's own actions replayed with noise (:func:`action_noise_replays`) to calibrate it."""
+    cfg = OmegaConf.load(run / "config.yaml")
+    _, final, original, generated = load_flow_sets(run)
+    name = str(cfg.env.name)
+    out = locomotion_open_loop_improvement(final, original, generated, env_name=name, progress=progress)
+    return {"env": name, "seed": int(cfg.seed), "top_k": int(original.batch_size[0]),
+            "flow_filter": str(cfg.flow.get("filter", "score_model")), **out,
+            "top_k_action_noise": action_noise_replays(name, original, noise, seed=int(cfg.seed))}
 
 
 def open_loop(run: Path, *, horizon: int, progress: bool, hold: bool = True) -> dict:
@@ -125,6 +165,9 @@ def describe(run: Path, entry: dict) -> str:
                      f"{c['true_return_mean_after']:.0f} claimed / {r['true_return_mean_after']:.0f} replayed; max "
                      f"{c['true_return_max_before']:.0f} -> {c['true_return_max_after']:.0f} claimed / "
                      f"{r['true_return_max_after']:.0f} replayed")
+    for row in entry.get("top_k_action_noise", []):
+        lines.append(f"  top-k actions + N(0, {row['action_noise_std']}): replayed mean {row['return_mean']:.0f}, "
+                     f"ended early {100 * row['terminated_early']:.0f}%")
     return "\n".join(lines)
 
 
@@ -138,12 +181,20 @@ def main() -> None:
     parser.add_argument("--no-hold", action="store_true",
                         help="stop each replay after the sample's last action (default: the hand then holds still, "
                              "zero actions, until the stop rule or the time limit)")
+    parser.add_argument("--action-noise", type=float, nargs="*", default=[0.05, 0.1, 0.2, 0.4],
+                        help="locomotion runs: also replay the top-k's own actions with Gaussian noise of these stds "
+                             "(how fragile open loop is on the data)")
     args = runs_from_args(parser, summarize)
     if args is None:
         return
-    measure_runs(args.run_dirs, args.out, {"horizon": args.horizon, "hold": not args.no_hold},
-                 lambda run: open_loop(run, horizon=args.horizon, progress=not args.no_progress, hold=not args.no_hold),
-                 describe)
+
+    def measure(run: Path) -> dict:
+        if env_kind(str(OmegaConf.load(run / "config.yaml").env.name)) == "locomotion":
+            return locomotion_open_loop(run, noise=args.action_noise, progress=not args.no_progress)
+        return open_loop(run, horizon=args.horizon, progress=not args.no_progress, hold=not args.no_hold)
+
+    measure_runs(args.run_dirs, args.out, {"horizon": args.horizon, "hold": not args.no_hold,
+                                           "action_noise": args.action_noise}, measure, describe)
 
 
 if __name__ == "__main__":

@@ -257,3 +257,28 @@ def test_recipe_open_loop_analysis_on_locomotion(tmp_path, report_rows):
                 "share of steps run)"]
     assert row.startswith(f"{ours['claimed_plain_mean_generated']:.4g} -> ") and row.endswith(
         f"(1; {ours['replay_length_fraction_median']:.4g})")
+
+
+def test_open_loop_bench_on_a_locomotion_run(tmp_path):
+    """bench/open_loop.py on a finished locomotion run: the library's reading, and the top-k's own actions replayed
+    with noise (std 0: the recorded return)."""
+    from pathlib import Path
+
+    from omegaconf import OmegaConf
+
+    from torchrl_ftb.testing import load_script
+
+    final, recorded, recorded_return = _recorded_and_a_falling_claim()
+    (tmp_path / "checkpoints").mkdir()
+    OmegaConf.save(OmegaConf.create({"env": {"name": "hopper"}, "seed": 3, "flow": {}}), tmp_path / "config.yaml")
+    torch.save({"trajectories": {"data": final.to_dict(), "batch_size": list(final.batch_size)},
+                "original": {"data": recorded.to_dict(), "batch_size": list(recorded.batch_size)},
+                "source_step": torch.tensor([0, 2])}, tmp_path / "checkpoints" / "flow.pt")
+    bench = load_script(Path(__file__).resolve().parents[1] / "bench" / "open_loop.py", "bench_open_loop_loco")
+    entry = bench.locomotion_open_loop(tmp_path, noise=[0.0, 0.5], progress=False)
+    assert entry["env"] == "hopper" and entry["seed"] == 3 and entry["num_generated"] == 1
+    assert entry["improvement"]["plain"]["replayed"]["true_return_mean_before"] == pytest.approx(recorded_return, abs=1e-3)
+    clean, noisy = entry["top_k_action_noise"]
+    assert clean["return_mean"] == pytest.approx(recorded_return, abs=1e-3) and clean["terminated_early"] == 0.0
+    assert noisy["action_noise_std"] == 0.5 and noisy["return_mean"] != clean["return_mean"]
+    assert "N(0, 0.5)" in bench.describe(tmp_path, entry)
