@@ -55,14 +55,15 @@ def load_flow(run: Path) -> tuple:
 
 def action_noise_replays(env_name: str, trajs, noise: list[float], *, seed: int = 0) -> list[dict]:
     """How fragile open loop is on this data: ``trajs``' own actions replayed from their own starts with Gaussian
-    noise of each std added (then clipped to the action box), one draw per std (seeded): mean return and the
-    share the env ends before the actions run out."""
-    generator = torch.Generator().manual_seed(seed)
+    noise of each std added (then clipped to the action box): mean return and the share the env ends before the
+    actions run out. One seeded standard-normal draw, scaled by each std (common random numbers: a row does not
+    depend on which other stds are asked for)."""
+    draw = torch.randn(trajs["action"].shape, generator=torch.Generator().manual_seed(seed))
     lengths = trajs["mask"].sum(-1)
     out = []
     for std in noise:
         noisy = trajs.select("observation", "action", "mask").clone()
-        noisy["action"] = noisy["action"] + std * torch.randn(noisy["action"].shape, generator=generator)
+        noisy["action"] = noisy["action"] + std * draw
         returns, episodes = locomotion_replays(env_name, noisy)
         early = [ep["terminated"] and len(ep["reward"]) < int(n) for ep, n in zip(episodes, lengths)]
         out.append({"action_noise_std": std, "return_mean": float(returns.mean()),
