@@ -45,6 +45,7 @@ from tensordict import TensorDict, TensorDictBase
 
 from torchrl_ftb.analysis import (
     locomotion_open_loop_improvement,
+    locomotion_tracked_improvement,
     novelty,
     open_loop_improvement,
     plot_flow_curves,
@@ -636,17 +637,26 @@ def open_loop_analysis(cfg: DictConfig, run: RunDir, flow: dict, trajs: TensorDi
 def tracked_analysis(cfg: DictConfig, run: RunDir, flow: dict, trajs: TensorDictBase, meta: dict, *,
                      progress: bool) -> dict | None:
     """``analysis.tracked``: the flow's improvement with every state path tracked in closed loop (generated
-    Meta-World data only, else None; off by default).
+    Meta-World data and locomotion, else None; off by default).
 
-    Tracks, with the run's inverse-dynamics tracker (:func:`path_tracker`), the original top-k and the final
-    set's generated trajectories in the simulator (:func:`torchrl_ftb.analysis.tracked_improvement`); writes
-    the per-sample numbers to ``tracked.json`` and returns the summary.
+    Meta-World: tracks, with the run's inverse-dynamics tracker (:func:`path_tracker`), the original top-k and
+    the final set's generated trajectories in the simulator (:func:`torchrl_ftb.analysis.tracked_improvement`).
+    Locomotion: a one-step shooting tracker with the simulator as its model follows every path of both sets from
+    its own first state (:func:`torchrl_ftb.analysis.locomotion_tracked_improvement`). Writes the per-sample
+    numbers to ``tracked.json`` and returns the summary.
     """
     analysis = cfg.get("analysis", {})
     if not bool(analysis.get("tracked", False)):
         return None
+    if env_kind(cfg.env.name) == "locomotion":  # the simulator as the tracker's model, from each path's own start
+        out = locomotion_tracked_improvement(flow["trajectories"], flow["original"],
+                                             torch.as_tensor(flow["source_step"]) > 0, env_name=str(cfg.env.name),
+                                             seed=int(cfg.seed), progress=progress)
+        samples = out.pop("samples")
+        write_json(run.path / "tracked.json", {**out, "samples": samples})
+        return out
     if meta.get("domain") != "metaworld" or "per_trajectory" not in meta:
-        return None  # no goals and starts to track from (toy, locomotion, D4RL/Minari files)
+        return None  # no goals and starts to track from (toy, D4RL/Minari Meta-World files)
     horizon = _optional_int(cfg.flow.get("true_return_horizon")) or int(cfg.env.max_episode_steps)
     tracker = path_tracker(cfg, run, trajs, progress=progress)
     out = tracked_improvement(flow["trajectories"], flow["original"], torch.as_tensor(flow["source_step"]) > 0,
@@ -666,6 +676,75 @@ def _fmt(v: Any) -> str:
     if isinstance(v, float):
         return f"{v:.4g}"
     return str(v)
+
+
+def open_loop_rows(ol: dict | None) -> list[tuple[str, str]]:
+    """The report rows of ``analysis.open_loop`` (Meta-World: stop-rule returns from the nearest dataset start;
+    locomotion, ``horizon`` None: plain returns, each trajectory from its own first state)."""
+    if ol is None:
+        return []
+    rows = []
+    if ol.get("horizon") is None:
+        r = ol["improvement"]["plain"]["replayed"]
+        rows.append(("true return top-k replayed open loop in the simulator: mean / max before -> after",
+                     f"{r['true_return_mean_before']:.4g} -> {r['true_return_mean_after']:.4g} / "
+                     f"{r['true_return_max_before']:.4g} -> {r['true_return_max_after']:.4g}"))
+        if ol["num_generated"]:
+            rows.append(("generated in final set, replayed: return claimed -> replayed (replays the env ends "
+                         "early; median share of steps run)",
+                         f"{ol['claimed_plain_mean_generated']:.4g} -> {ol['replayed_plain_mean_generated']:.4g} "
+                         f"({_fmt(ol['replay_terminated_rate'])}; {_fmt(ol['replay_length_fraction_median'])})"))
+        return rows
+    r = ol["improvement"][f"stop_rule_{int(ol['horizon'])}"]["replayed"]
+    rows.append((f"true return top-k replayed in the simulator (stop rule, {int(ol['horizon'])} steps): "
+                 "mean / max before -> after",
+                 f"{r['true_return_mean_before']:.4g} -> {r['true_return_mean_after']:.4g} / "
+                 f"{r['true_return_max_before']:.4g} -> {r['true_return_max_after']:.4g}"))
+    if ol["num_generated"]:
+        rows.append(("generated in final set, replayed: return claimed -> replayed (replays that succeed)",
+                     f"{ol['claimed_stop_rule_mean_generated']:.4g} -> "
+                     f"{ol['replayed_stop_rule_mean_generated']:.4g} ({_fmt(ol['replay_success_rate'])})"))
+        rows.append(("generated in final set, first step: off the nearest dataset start, m (median) / "
+                     "hand-object distance, m: sample vs that start",
+                     f"{_fmt(ol['start_distance_median'])} / {_fmt(ol['start_hand_object_median'])} vs "
+                     f"{_fmt(ol['data_start_hand_object_median'])}"))
+    return rows
+
+
+def tracked_rows(tr: dict | None) -> list[tuple[str, str]]:
+    """The report rows of ``analysis.tracked`` (Meta-World: the inverse-dynamics tracker, stop-rule returns;
+    locomotion, ``horizon`` None: the simulator shooting tracker, plain returns)."""
+    if tr is None:
+        return []
+    t, fid, gen = tr["tracked"], tr["fidelity"], tr["generated"]
+    locomotion = tr.get("horizon") is None
+    rows = [(("true return top-k tracked in closed loop (simulator shooting tracker)" if locomotion else
+              f"true return top-k tracked in closed loop (stop rule, {int(tr['horizon'])} steps)")
+             + ": mean / max before -> after",
+             f"{t['true_return_mean_before']:.4g} -> {t['true_return_mean_after']:.4g} / "
+             f"{t['true_return_max_before']:.4g} -> {t['true_return_max_after']:.4g}")]
+    if locomotion:
+        rows.append(("tracker on the top-k: claimed -> tracked mean (scaled path error, median)",
+                     f"{fid['claimed_mean']:.4g} -> {fid['tracked_mean']:.4g} ({_fmt(fid['path_error_median'])})"))
+        if gen["num_generated"]:
+            rows.append(("generated in final set, tracked: return claimed -> tracked (tracks the env ends early; "
+                         "scaled path error, median)",
+                         f"{gen['claimed_plain_mean']:.4g} -> {gen['tracked_plain_mean']:.4g} "
+                         f"({_fmt(gen['tracked_terminated_rate'])}; {_fmt(gen['path_error_median'])})"))
+        return rows
+    rows.append(("tracker on the top-k: recorded -> tracked mean (hand off its path, m, median)",
+                 f"{fid['recorded_mean']:.4g} -> {fid['tracked_mean']:.4g} ({_fmt(fid['hand_deviation_median'])})"))
+    if gen.get("off_path"):  # runs before session 32 did not record it
+        on = tr["tracked_on_path"]
+        rows.append((f"the same without the {gen['off_path']} generated paths the tracker left further than any "
+                     "top-k path: mean / max before -> after",
+                     f"{on['true_return_mean_before']:.4g} -> {on['true_return_mean_after']:.4g} / "
+                     f"{on['true_return_max_before']:.4g} -> {on['true_return_max_after']:.4g}"))
+    if gen["num_generated"]:
+        rows.append(("generated in final set, tracked: return claimed -> tracked (hand off its path, m, median)",
+                     f"{gen['claimed_stop_rule_mean']:.4g} -> {gen['tracked_stop_rule_mean']:.4g} "
+                     f"({_fmt(gen['hand_deviation_median'])})"))
+    return rows
 
 
 def final_table(metrics: dict) -> list[tuple[str, str]]:
@@ -695,51 +774,8 @@ def final_table(metrics: dict) -> list[tuple[str, str]]:
         rows.append((f"the same after the stop-rule cut ({int(fl['true_return_streak'])} successes): before -> after",
                      f"{fl['true_return_filled_stop_rule_mean_before']:.4g} -> "
                      f"{fl['true_return_filled_stop_rule_mean_after']:.4g}"))
-    if "open_loop" in metrics.get("analysis", {}):
-        ol = metrics["analysis"]["open_loop"]
-        if ol.get("horizon") is None:  # locomotion: plain returns, each trajectory replayed from its own first state
-            r = ol["improvement"]["plain"]["replayed"]
-            rows.append(("true return top-k replayed open loop in the simulator: mean / max before -> after",
-                         f"{r['true_return_mean_before']:.4g} -> {r['true_return_mean_after']:.4g} / "
-                         f"{r['true_return_max_before']:.4g} -> {r['true_return_max_after']:.4g}"))
-            if ol["num_generated"]:
-                rows.append(("generated in final set, replayed: return claimed -> replayed (replays the env ends "
-                             "early; median share of steps run)",
-                             f"{ol['claimed_plain_mean_generated']:.4g} -> {ol['replayed_plain_mean_generated']:.4g} "
-                             f"({_fmt(ol['replay_terminated_rate'])}; {_fmt(ol['replay_length_fraction_median'])})"))
-        else:
-            r = ol["improvement"][f"stop_rule_{int(ol['horizon'])}"]["replayed"]
-            rows.append((f"true return top-k replayed in the simulator (stop rule, {int(ol['horizon'])} steps): "
-                         "mean / max before -> after",
-                         f"{r['true_return_mean_before']:.4g} -> {r['true_return_mean_after']:.4g} / "
-                         f"{r['true_return_max_before']:.4g} -> {r['true_return_max_after']:.4g}"))
-            if ol["num_generated"]:
-                rows.append(("generated in final set, replayed: return claimed -> replayed (replays that succeed)",
-                             f"{ol['claimed_stop_rule_mean_generated']:.4g} -> "
-                             f"{ol['replayed_stop_rule_mean_generated']:.4g} ({_fmt(ol['replay_success_rate'])})"))
-                rows.append(("generated in final set, first step: off the nearest dataset start, m (median) / "
-                             "hand-object distance, m: sample vs that start",
-                             f"{_fmt(ol['start_distance_median'])} / {_fmt(ol['start_hand_object_median'])} vs "
-                             f"{_fmt(ol['data_start_hand_object_median'])}"))
-    if "tracked" in metrics.get("analysis", {}):
-        tr = metrics["analysis"]["tracked"]
-        t, fid, gen = tr["tracked"], tr["fidelity"], tr["generated"]
-        rows.append((f"true return top-k tracked in closed loop (stop rule, {int(tr['horizon'])} steps): "
-                     "mean / max before -> after",
-                     f"{t['true_return_mean_before']:.4g} -> {t['true_return_mean_after']:.4g} / "
-                     f"{t['true_return_max_before']:.4g} -> {t['true_return_max_after']:.4g}"))
-        rows.append(("tracker on the top-k: recorded -> tracked mean (hand off its path, m, median)",
-                     f"{fid['recorded_mean']:.4g} -> {fid['tracked_mean']:.4g} ({_fmt(fid['hand_deviation_median'])})"))
-        if gen.get("off_path"):  # runs before session 32 did not record it
-            on = tr["tracked_on_path"]
-            rows.append((f"the same without the {gen['off_path']} generated paths the tracker left further than any "
-                         "top-k path: mean / max before -> after",
-                         f"{on['true_return_mean_before']:.4g} -> {on['true_return_mean_after']:.4g} / "
-                         f"{on['true_return_max_before']:.4g} -> {on['true_return_max_after']:.4g}"))
-        if gen["num_generated"]:
-            rows.append(("generated in final set, tracked: return claimed -> tracked (hand off its path, m, median)",
-                         f"{gen['claimed_stop_rule_mean']:.4g} -> {gen['tracked_stop_rule_mean']:.4g} "
-                         f"({_fmt(gen['hand_deviation_median'])})"))
+    rows += open_loop_rows(metrics.get("analysis", {}).get("open_loop"))
+    rows += tracked_rows(metrics.get("analysis", {}).get("tracked"))
     rows += [
         ("flow steps run / planned", f"{int(fl['flow_steps_run'])} / {int(fl['flow_steps_planned'])}"),
         ("generated trajectories in final set", _fmt(fl["fraction_generated_in_final"])),

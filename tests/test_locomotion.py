@@ -282,3 +282,44 @@ def test_open_loop_bench_on_a_locomotion_run(tmp_path):
     assert clean["return_mean"] == pytest.approx(recorded_return, abs=1e-3) and clean["terminated_early"] == 0.0
     assert noisy["action_noise_std"] == 0.5 and noisy["return_mean"] != clean["return_mean"]
     assert "N(0, 0.5)" in bench.describe(tmp_path, entry)
+
+
+def test_locomotion_tracker_reproduces_a_recorded_path_and_tells_reachable_from_unreachable_claims(tmp_path,
+                                                                                                     report_rows):
+    """The shooting tracker follows a recorded path exactly. The claimed standing path, whose own actions fall
+    open loop, is a reachable path: other actions hold it, so its tracked return is near its claim. A path that
+    claims a fast forward velocity while staying in place is not: tracked far below its claim. The recipe's
+    analysis.tracked writes the same numbers and its report rows."""
+    import types
+    from pathlib import Path
+
+    from omegaconf import OmegaConf
+
+    from torchrl_ftb.analysis import locomotion_open_loop_improvement, locomotion_tracked_improvement
+    from torchrl_ftb.testing import load_script
+
+    final, recorded, recorded_return = _recorded_and_a_falling_claim()
+    sliding = final[1:].clone()
+    sliding["observation"][..., 5] = 3.0  # x velocity 3 m/s, the body never moving: each transition earns it
+    final = torch.cat([final, sliding])
+    generated = torch.tensor([False, True, True])
+    out = locomotion_tracked_improvement(final, recorded, generated, env_name="hopper", candidates=32)
+    assert out["tracked"]["true_return_mean_before"] == pytest.approx(recorded_return, abs=1e-3)
+    assert out["fidelity"]["path_error_median"] < 1e-4
+    standing, slide = out["samples"]
+    open_loop = locomotion_open_loop_improvement(final, recorded, generated, env_name="hopper")["samples"][0]
+    assert open_loop["replay_terminated"] and not standing["tracked_terminated"]
+    assert standing["tracked_plain"] == pytest.approx(standing["claimed_plain"], rel=0.15)
+    assert slide["claimed_plain"] > 2 * standing["claimed_plain"] and slide["tracked_plain"] < 0.6 * slide["claimed_plain"]
+    assert slide["path_error"] > standing["path_error"]
+    recipe = load_script(Path(__file__).resolve().parents[1] / "recipes" / "ftb_offline.py", "recipe_tracked_loco")
+    cfg = OmegaConf.create({"env": {"name": "hopper"}, "seed": 0, "flow": {}, "analysis": {"tracked": True}})
+    flow = {"trajectories": final, "original": recorded, "source_step": torch.tensor([0, 2, 2])}
+    ours = recipe.tracked_analysis(cfg, types.SimpleNamespace(path=tmp_path), flow, None, {"domain": "locomotion"},
+                                   progress=False)
+    assert ours["tracked"]["true_return_mean_before"] == pytest.approx(recorded_return, abs=1e-3)
+    assert len(json.loads((tmp_path / "tracked.json").read_text())["samples"]) == 2
+    table = report_rows(recipe, analysis={"tracked": ours}, env="hopper")
+    assert "true return top-k tracked in closed loop (simulator shooting tracker): mean / max before -> after" in table
+    assert table["tracker on the top-k: claimed -> tracked mean (scaled path error, median)"].startswith(
+        f"{recorded_return:.4g} -> {recorded_return:.4g}")

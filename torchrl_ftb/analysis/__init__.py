@@ -12,7 +12,7 @@ from torchrl_ftb.analysis.replay import (
     replay_returns,
     summarize_samples,
 )
-from torchrl_ftb.analysis.tracking import track_paths, tracked_improvement
+from torchrl_ftb.analysis.tracking import locomotion_tracked_improvement, track_paths, tracked_improvement
 
 __all__ = [
     "dynamics_error",
@@ -20,6 +20,7 @@ __all__ = [
     "improvement",
     "locomotion_open_loop_improvement",
     "locomotion_replays",
+    "locomotion_tracked_improvement",
     "match_rows",
     "metaworld_state_returns",
     "nearest_start",

@@ -20,6 +20,7 @@ from torchrl_ftb.envs.locomotion import (
     make_locomotion_env,
     oracle_step,
     replay_locomotion_actions,
+    track_locomotion_paths,
 )
 from torchrl_ftb.envs.metaworld import (
     METAWORLD_MAX_EPISODE_STEPS,
@@ -89,6 +90,7 @@ __all__ = [
     "observation_layout",
     "oracle_step",
     "replay_locomotion_actions",
+    "track_locomotion_paths",
     "physics_limit",
     "scripted_policy",
     "true_reward_fn",

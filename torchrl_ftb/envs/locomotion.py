@@ -5,7 +5,8 @@ does not affect the dynamics), so the simulator state can be rebuilt from an obs
 :func:`oracle_step` steps it, :func:`locomotion_true_reward` gives the exact reward of
 ``(s, a)``, so ``torchrl_ftb.analysis.dynamics_error(trajs, partial(oracle_step, env))`` checks
 generated transitions against the simulator.
-:func:`replay_locomotion_actions` runs a trajectory's actions open loop from its first observation.
+:func:`replay_locomotion_actions` runs a trajectory's actions open loop from its first observation;
+:func:`track_locomotion_paths` follows its observations in closed loop instead.
 One caveat: Hopper and Walker2d clip the velocities in the observation to ±10, so a state
 whose true velocity exceeded that is rebuilt with the clipped value.
 
@@ -34,6 +35,7 @@ __all__ = [
     "oracle_step",
     "locomotion_true_reward",
     "replay_locomotion_actions",
+    "track_locomotion_paths",
 ]
 
 LOCOMOTION_ENVS = {"hopper": "Hopper-v5", "walker2d": "Walker2d-v5", "halfcheetah": "HalfCheetah-v5"}
@@ -225,4 +227,84 @@ def replay_locomotion_actions(env_name: str, first_observation: torch.Tensor,
                 break
         out.append({"reward": np.asarray(rewards, np.float64), "observation": np.stack(states),
                     "terminated": bool(terminated)})
+    return out
+
+
+def track_locomotion_paths(env_name: str, paths: torch.Tensor, actions: torch.Tensor, lengths: list[int], *,
+                           scale: torch.Tensor | np.ndarray | None = None, candidates: int = 64, noise: float = 0.3,
+                           uniform: float = 0.5, seed: int = 0) -> list[dict[str, np.ndarray | bool]]:
+    """Closed-loop tracking of observation paths with the simulator as the model: a one-step shooting controller.
+
+    From the state rebuilt from a path's first observation, every step tries ``candidates`` actions (the path's
+    own action; of the other ``candidates - 1``, the share ``uniform`` drawn uniformly from the action box
+    ``[-1, 1]``, the rest Gaussian perturbations of the path's action, std ``noise``, clipped) from the state
+    the simulator actually reached, keeps the one whose next observation lands nearest the path's next
+    one (distance per dimension divided by ``scale``), and steps the env with it (its reward and termination).
+    The last step, with no next observation to aim at, takes the path's own action. A path the simulator can
+    follow (a recorded one) is reproduced exactly: its own action lands on it.
+
+    Args:
+        env_name: locomotion env (see :func:`locomotion_env_id`).
+        paths: ``[N, H, obs_dim]`` observations; ``actions``: ``[N, H, act_dim]`` (the candidates' centre).
+        lengths: valid steps of each path.
+        scale: ``[obs_dim]`` per-dimension scale of the distance (e.g. the data's std); default 1.
+        candidates: actions tried per step (>= 1).
+        noise: std of the perturbations.
+        uniform: share of the other candidates drawn uniformly from the action box (any action, not only ones
+            near the path's own).
+        seed: seeds the perturbations.
+
+    Returns:
+        One dict per path: ``"reward"`` ``[n_i]``, ``"observation"`` ``[n_i + 1, obs_dim]``, ``"terminated"``
+        (the env ended it) and ``"path_error"`` ``[n_i - 1]`` (scaled distance to the path's next observation).
+
+    Example:
+        >>> env = make_locomotion_env("hopper", seed=0)
+        >>> td = env.rollout(6)
+        >>> ep = track_locomotion_paths("hopper", td["observation"][None], td["action"][None], [6], candidates=8)[0]
+        >>> bool(np.allclose(ep["reward"], td["next", "reward"].squeeze(-1).numpy(), atol=1e-4))
+        True
+    """
+    if candidates < 1 or not 0.0 <= uniform <= 1.0:
+        raise ValueError(f"track_locomotion_paths: need candidates >= 1 and uniform in [0, 1], got {candidates}, "
+                         f"{uniform}")
+    num_uniform = int(round(uniform * (candidates - 1)))
+    env_id = locomotion_env_id(env_name)
+    u = _sim(env_id)
+    paths_np = paths.detach().cpu().double().numpy() if isinstance(paths, torch.Tensor) else np.asarray(paths, float)
+    acts = actions.detach().cpu().double().numpy() if isinstance(actions, torch.Tensor) else np.asarray(actions, float)
+    if paths_np.ndim != 3 or acts.shape[:2] != paths_np.shape[:2] or len(lengths) != paths_np.shape[0]:
+        raise ValueError(f"track_locomotion_paths: paths {list(paths_np.shape)}, actions {list(acts.shape)} and "
+                         f"{len(lengths)} lengths do not match ([N, H, obs], [N, H, act], N)")
+    _check_dims(u, paths_np[:, 0], acts[:, 0], env_id)
+    inv_scale = 1.0 / (np.ones(paths_np.shape[-1]) if scale is None else np.asarray(scale, np.float64))
+    rng = np.random.default_rng(seed)
+    out = []
+    for path, act, n in zip(paths_np, acts, lengths):
+        _set_from_obs(u, path[0])
+        rewards, states, errors, terminated = [], [u._get_obs()], [], False
+        for t in range(int(n)):
+            action = np.clip(act[t], -1.0, 1.0)
+            if t + 1 < int(n) and candidates > 1:
+                qpos, qvel = u.data.qpos.copy(), u.data.qvel.copy()
+                tries = np.concatenate([
+                    action[None], rng.uniform(-1.0, 1.0, (num_uniform, action.shape[-1])),
+                    np.clip(action + noise * rng.standard_normal((candidates - 1 - num_uniform, action.shape[-1])),
+                            -1.0, 1.0)])
+                dist = np.empty(candidates)
+                for j, a in enumerate(tries):
+                    u.set_state(qpos, qvel)
+                    u.do_simulation(a, u.frame_skip)
+                    dist[j] = np.linalg.norm((u._get_obs() - path[t + 1]) * inv_scale)
+                u.set_state(qpos, qvel)
+                action = tries[int(dist.argmin())]
+            nxt, reward, terminated, _, _ = u.step(action)
+            rewards.append(reward)
+            states.append(nxt)
+            if t + 1 < int(n):
+                errors.append(float(np.linalg.norm((nxt - path[t + 1]) * inv_scale)))
+            if terminated:
+                break
+        out.append({"reward": np.asarray(rewards, np.float64), "observation": np.stack(states),
+                    "terminated": bool(terminated), "path_error": np.asarray(errors, np.float64)})
     return out
