@@ -134,11 +134,23 @@ def _find_metrics(run_dir: Path) -> Path:
     return found[-1]
 
 
+def _task_of(env: str, config_file: Path) -> str:
+    """The harness's task name of a run: ``env``, or ``<env>-<kind>`` for a locomotion dataset kind (the inverse of
+    :func:`task_overrides`), read off the run's resolved ``config.yaml``."""
+    if not config_file.exists():
+        return env
+    from omegaconf import OmegaConf  # hydra's; only the import needs it
+
+    kind = OmegaConf.select(OmegaConf.load(config_file), "dataset.options.kind")
+    return f"{env}-{kind}" if kind else env
+
+
 def import_run(run_dir: Path, *, results_dir: Path, overwrite: bool = False) -> dict[str, Any]:
     """Write the cell JSON of a finished recipe run that was not started by this harness.
 
     The cell's method, task, seed, teacher and preset come from the run's metrics JSON (both
-    recipes record them; ``recipes/ftb_offline.py`` runs are ``ftb``); ``command``,
+    recipes record them; ``recipes/ftb_offline.py`` runs are ``ftb``; a locomotion dataset kind from its
+    ``config.yaml``, so the cell is named as the harness names it, e.g. ``hopper-medium-replay``); ``command``,
     ``git_commit``, ``machine`` and ``wall_time_s`` are the run's own, and ``imported_from``
     names the run directory.
 
@@ -157,11 +169,11 @@ def import_run(run_dir: Path, *, results_dir: Path, overwrite: bool = False) -> 
                          f"{missing + ([] if teacher is not None else ['teacher'])}")
     score_name, score = _score_from_metrics(metrics)
     method = str(metrics.get("method", "ftb"))
-    task, seed, teacher = str(metrics["env"]), int(metrics["seed"]), str(teacher).split("(")[0]
+    config_file = run_dir / "config.yaml"
+    task, seed, teacher = _task_of(str(metrics["env"]), config_file), int(metrics["seed"]), str(teacher).split("(")[0]
     out = cell_path(results_dir, method, task, teacher, seed)
     if out.exists() and not overwrite:
         raise ValueError(f"{out}: the cell exists; not overwritten")
-    config_file = run_dir / "config.yaml"
     record = {
         "method": method, "env": task, "seed": seed, "teacher": teacher, "preset": str(metrics["preset"]),
         "score_name": score_name, "score": score, "wall_time_s": float(metrics["wall_time_s"]),

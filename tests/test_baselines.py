@@ -289,6 +289,14 @@ def test_table1_imports_a_finished_run_into_its_own_section(tmp_path):
     assert (cells / "ftb__drawer-open-v3__return__seed0.json").exists()
     with pytest.raises(ValueError, match="exists"):  # never overwritten
         table1.import_run(run, results_dir=cells)
+    # a locomotion run: the cell is named by env and dataset kind, as the harness names its cells
+    loco = tmp_path / "loco"
+    loco.mkdir()
+    (loco / "metrics.json").write_text(json.dumps({**metrics, "env": "hopper", "eval": {"normalized_score": 6.4}}))
+    (loco / "config.yaml").write_text("env:\n  name: hopper\ndataset:\n  options:\n    kind: medium-replay\n")
+    assert table1.import_run(loco, results_dir=cells)["env"] == "hopper-medium-replay"
+    assert (cells / "ftb__hopper-medium-replay__return__seed0.json").exists()
+    assert table1.task_overrides("hopper-medium-replay")[1] == "+dataset.options.kind=medium-replay"
     md = tmp_path / "BENCHMARKS.md"
     md.write_text("# B\n\n<!-- table1:start -->\nkeep\n<!-- table1:end -->\n\n<!-- table1-v2:start -->\nold\n"
                   "<!-- table1-v2:end -->\n")
