@@ -139,12 +139,28 @@ def checked_final_set(name: str, task: str, final: TensorDictBase, original: Ten
     if meta.get("domain") != "metaworld" or "per_trajectory" not in meta:
         raise ValueError(f"{name}: {task}'s dataset is not a generated Meta-World one "
                          f"(its goals and starts are needed to replay from them)")
+    keys = ("observation", "action", "mask")
+    return final.select(*keys).to("cpu"), original.select(*keys).to("cpu"), checked_generated(name, final, generated)
+
+
+def checked_generated(name: str, final: TensorDictBase, generated: torch.Tensor) -> torch.Tensor:
+    """``generated`` as a CPU bool tensor, one flag per final-set trajectory, or a ``ValueError`` naming ``name``."""
     generated = torch.as_tensor(generated, dtype=torch.bool).cpu()
     if generated.shape != final.batch_size[:1]:
         raise ValueError(f"{name}: generated has shape {list(generated.shape)}, "
                          f"expected [{final.batch_size[0]}] (one flag per final-set trajectory)")
-    keys = ("observation", "action", "mask")
-    return final.select(*keys).to("cpu"), original.select(*keys).to("cpu"), generated
+    return generated
+
+
+def locomotion_sets(name: str, env_name: str, final: TensorDictBase, original: TensorDictBase,
+                    generated: torch.Tensor) -> tuple[torch.Tensor, list[TensorDictBase], list[torch.Tensor]]:
+    """The locomotion readings' shared input: ``(generated flags, [top-k, final set], their claimed returns)``, the
+    sets on CPU with actions clipped to ``[-1, 1]`` and trajectory keys only, the claimed returns the exact reward of
+    each ``(s, a)`` summed (``float64 [K]`` each)."""
+    generated = checked_generated(name, final, generated)
+    sets = [clip_actions(t.select("observation", "action", "mask").to("cpu").clone(), 1.0) for t in (original, final)]
+    reward_fn = true_reward_fn(env_name)
+    return generated, sets, [masked_true_returns(t, reward_fn)[:, 0] for t in sets]
 
 
 def open_loop_improvement(
@@ -330,13 +346,7 @@ def locomotion_open_loop_improvement(final: TensorDictBase, original: TensorDict
         >>> abs(r["true_return_mean_after"] - float(td["next", "reward"].sum())) < 1e-3, out["replay_terminated_rate"]
         (True, 0.0)
     """
-    generated = torch.as_tensor(generated, dtype=torch.bool).cpu()
-    if generated.shape != final.batch_size[:1]:
-        raise ValueError(f"locomotion_open_loop_improvement: generated has shape {list(generated.shape)}, "
-                         f"expected [{final.batch_size[0]}] (one flag per final-set trajectory)")
-    sets = [clip_actions(t.select("observation", "action", "mask").to("cpu").clone(), 1.0) for t in (original, final)]
-    reward_fn = true_reward_fn(env_name)
-    claimed = [masked_true_returns(t, reward_fn)[:, 0] for t in sets]
+    generated, sets, claimed = locomotion_sets("locomotion_open_loop_improvement", env_name, final, original, generated)
     replayed, episodes = [], []
     for t in tqdm(sets, desc=f"{env_name} open-loop replays (top-k, final set)", disable=not progress):
         returns, eps = locomotion_replays(env_name, t)

@@ -31,6 +31,7 @@ from tqdm.auto import tqdm
 from torchrl_ftb.analysis.replay import (
     checked_final_set,
     episode_jobs,
+    locomotion_sets,
     match_rows,
     metaworld_state_returns,
     nearest_start,
@@ -38,8 +39,8 @@ from torchrl_ftb.analysis.replay import (
 )
 from torchrl_ftb.data.labels import true_return
 from torchrl_ftb.datasets.metaworld import generate_metaworld_episodes
-from torchrl_ftb.envs import track_locomotion_paths, true_reward_fn
-from torchrl_ftb.flow.flow import clip_actions, masked_true_returns, return_summary
+from torchrl_ftb.envs import track_locomotion_paths
+from torchrl_ftb.flow.flow import clip_actions, return_summary
 from torchrl_ftb.policy.inverse_dynamics import PathTracker
 
 
@@ -200,19 +201,13 @@ def locomotion_tracked_improvement(final: TensorDictBase, original: TensorDictBa
         >>> abs(out["tracked"]["true_return_mean_after"] - float(td["next", "reward"].sum())) < 1e-3
         True
     """
-    generated = torch.as_tensor(generated, dtype=torch.bool).cpu()
-    if generated.shape != final.batch_size[:1]:
-        raise ValueError(f"locomotion_tracked_improvement: generated has shape {list(generated.shape)}, "
-                         f"expected [{final.batch_size[0]}] (one flag per final-set trajectory)")
-    sets = [clip_actions(t.select("observation", "action", "mask").to("cpu").clone(), 1.0) for t in (original, final)]
-    scale = original["observation"][original["mask"]].double().std(0).clamp_min(1e-6)
-    reward_fn = true_reward_fn(env_name)
-    claimed, tracked, episodes = [], [], []
+    generated, sets, claimed = locomotion_sets("locomotion_tracked_improvement", env_name, final, original, generated)
+    scale = sets[0]["observation"][sets[0]["mask"]].double().std(0).clamp_min(1e-6)
+    tracked, episodes = [], []
     for t in tqdm(sets, desc=f"{env_name} tracked paths (top-k, final set)", disable=not progress):
         lengths = [int(n) for n in t["mask"].sum(-1).tolist()]
         eps = track_locomotion_paths(env_name, t["observation"], t["action"], lengths, scale=scale,
                                      candidates=candidates, noise=noise, uniform=uniform, seed=seed)
-        claimed.append(masked_true_returns(t, reward_fn)[:, 0])
         tracked.append(torch.tensor([float(ep["reward"].sum()) for ep in eps], dtype=torch.float64))
         episodes.append(list(zip(lengths, eps)))
 
