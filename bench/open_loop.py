@@ -6,8 +6,9 @@ generated Meta-World data, replay every generated trajectory of the final set (`
 from its nearest dataset start, open loop, and compare the simulator's returns with the ones its states
 claim, original top-k -> final set. On locomotion runs every trajectory of both sets is replayed from its own
 first state (:func:`torchrl_ftb.analysis.locomotion_open_loop_improvement`), and the top-k's own actions are
-replayed again with Gaussian noise added (``--action-noise``), to show how fragile open loop is on that data. ``--no-hold`` stops each replay after the sample's last action
-instead of holding still until the stop rule or the time limit.
+replayed again with Gaussian noise added (``--action-noise``), to show how fragile open loop is on that data.
+``--no-hold`` stops each replay after the sample's last action instead of holding still until the stop rule or
+the time limit.
 
 Usage::
 
@@ -37,6 +38,7 @@ from expert_headroom import load_metaworld_run  # noqa: E402
 from flow_generated import load_flow_sets, measure_runs, runs_from_args  # noqa: E402
 
 from torchrl_ftb.analysis import (  # noqa: E402
+    ended_early,
     locomotion_open_loop_improvement,
     locomotion_replays,
     open_loop_improvement,
@@ -65,7 +67,7 @@ def action_noise_replays(env_name: str, trajs, noise: list[float], *, seed: int 
         noisy = trajs.select("observation", "action", "mask").clone()
         noisy["action"] = noisy["action"] + std * draw
         returns, episodes = locomotion_replays(env_name, noisy)
-        early = [ep["terminated"] and len(ep["reward"]) < int(n) for ep, n in zip(episodes, lengths)]
+        early = [ended_early(ep, n) for ep, n in zip(episodes, lengths.tolist())]
         out.append({"action_noise_std": std, "return_mean": float(returns.mean()),
                     "return_max": float(returns.max()), "terminated_early": sum(early) / len(early)})
     return out

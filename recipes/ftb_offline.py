@@ -648,22 +648,22 @@ def tracked_analysis(cfg: DictConfig, run: RunDir, flow: dict, trajs: TensorDict
     analysis = cfg.get("analysis", {})
     if not bool(analysis.get("tracked", False)):
         return None
+    source = torch.as_tensor(flow["source_step"]) > 0
     if env_kind(cfg.env.name) == "locomotion":  # the simulator as the tracker's model, from each path's own start
-        out = locomotion_tracked_improvement(flow["trajectories"], flow["original"],
-                                             torch.as_tensor(flow["source_step"]) > 0, env_name=str(cfg.env.name),
-                                             seed=int(cfg.seed), progress=progress)
-        samples = out.pop("samples")
-        write_json(run.path / "tracked.json", {**out, "samples": samples})
-        return out
-    if meta.get("domain") != "metaworld" or "per_trajectory" not in meta:
+        out = locomotion_tracked_improvement(flow["trajectories"], flow["original"], source,
+                                             env_name=str(cfg.env.name), seed=int(cfg.seed), progress=progress)
+        extra = {}
+    elif meta.get("domain") == "metaworld" and "per_trajectory" in meta:
+        horizon = _optional_int(cfg.flow.get("true_return_horizon")) or int(cfg.env.max_episode_steps)
+        tracker = path_tracker(cfg, run, trajs, progress=progress)
+        out = tracked_improvement(flow["trajectories"], flow["original"], source, trajs, meta,
+                                  task=str(cfg.env.name), horizon=horizon, tracker=tracker,
+                                  original_rows=flow.get("original_indices"), progress=progress)
+        extra = {"tracker_steps": tracker_steps(cfg)}
+    else:
         return None  # no goals and starts to track from (toy, D4RL/Minari Meta-World files)
-    horizon = _optional_int(cfg.flow.get("true_return_horizon")) or int(cfg.env.max_episode_steps)
-    tracker = path_tracker(cfg, run, trajs, progress=progress)
-    out = tracked_improvement(flow["trajectories"], flow["original"], torch.as_tensor(flow["source_step"]) > 0,
-                              trajs, meta, task=str(cfg.env.name), horizon=horizon, tracker=tracker,
-                              original_rows=flow.get("original_indices"), progress=progress)
     samples = out.pop("samples")
-    write_json(run.path / "tracked.json", {**out, "tracker_steps": tracker_steps(cfg), "samples": samples})
+    write_json(run.path / "tracked.json", {**out, **extra, "samples": samples})
     return out
 
 
@@ -678,36 +678,37 @@ def _fmt(v: Any) -> str:
     return str(v)
 
 
+def _mean_max(summary: dict) -> str:
+    """``"mean before -> after / max before -> after"`` of a ``return_summary``."""
+    return (f"{summary['true_return_mean_before']:.4g} -> {summary['true_return_mean_after']:.4g} / "
+            f"{summary['true_return_max_before']:.4g} -> {summary['true_return_max_after']:.4g}")
+
+
 def open_loop_rows(ol: dict | None) -> list[tuple[str, str]]:
     """The report rows of ``analysis.open_loop`` (Meta-World: stop-rule returns from the nearest dataset start;
     locomotion, ``horizon`` None: plain returns, each trajectory from its own first state)."""
     if ol is None:
         return []
-    rows = []
-    if ol.get("horizon") is None:
-        r = ol["improvement"]["plain"]["replayed"]
-        rows.append(("true return top-k replayed open loop in the simulator: mean / max before -> after",
-                     f"{r['true_return_mean_before']:.4g} -> {r['true_return_mean_after']:.4g} / "
-                     f"{r['true_return_max_before']:.4g} -> {r['true_return_max_after']:.4g}"))
-        if ol["num_generated"]:
-            rows.append(("generated in final set, replayed: return claimed -> replayed (replays the env ends "
-                         "early; median share of steps run)",
-                         f"{ol['claimed_plain_mean_generated']:.4g} -> {ol['replayed_plain_mean_generated']:.4g} "
-                         f"({_fmt(ol['replay_terminated_rate'])}; {_fmt(ol['replay_length_fraction_median'])})"))
+    locomotion = ol.get("horizon") is None
+    key = "plain" if locomotion else f"stop_rule_{int(ol['horizon'])}"
+    rows = [(("true return top-k replayed open loop in the simulator" if locomotion else
+              f"true return top-k replayed in the simulator (stop rule, {int(ol['horizon'])} steps)")
+             + ": mean / max before -> after", _mean_max(ol["improvement"][key]["replayed"]))]
+    if not ol["num_generated"]:
         return rows
-    r = ol["improvement"][f"stop_rule_{int(ol['horizon'])}"]["replayed"]
-    rows.append((f"true return top-k replayed in the simulator (stop rule, {int(ol['horizon'])} steps): "
-                 "mean / max before -> after",
-                 f"{r['true_return_mean_before']:.4g} -> {r['true_return_mean_after']:.4g} / "
-                 f"{r['true_return_max_before']:.4g} -> {r['true_return_max_after']:.4g}"))
-    if ol["num_generated"]:
-        rows.append(("generated in final set, replayed: return claimed -> replayed (replays that succeed)",
-                     f"{ol['claimed_stop_rule_mean_generated']:.4g} -> "
-                     f"{ol['replayed_stop_rule_mean_generated']:.4g} ({_fmt(ol['replay_success_rate'])})"))
-        rows.append(("generated in final set, first step: off the nearest dataset start, m (median) / "
-                     "hand-object distance, m: sample vs that start",
-                     f"{_fmt(ol['start_distance_median'])} / {_fmt(ol['start_hand_object_median'])} vs "
-                     f"{_fmt(ol['data_start_hand_object_median'])}"))
+    if locomotion:
+        rows.append(("generated in final set, replayed: return claimed -> replayed (replays the env ends "
+                     "early; median share of steps run)",
+                     f"{ol['claimed_plain_mean_generated']:.4g} -> {ol['replayed_plain_mean_generated']:.4g} "
+                     f"({_fmt(ol['replay_terminated_rate'])}; {_fmt(ol['replay_length_fraction_median'])})"))
+        return rows
+    rows.append(("generated in final set, replayed: return claimed -> replayed (replays that succeed)",
+                 f"{ol['claimed_stop_rule_mean_generated']:.4g} -> "
+                 f"{ol['replayed_stop_rule_mean_generated']:.4g} ({_fmt(ol['replay_success_rate'])})"))
+    rows.append(("generated in final set, first step: off the nearest dataset start, m (median) / "
+                 "hand-object distance, m: sample vs that start",
+                 f"{_fmt(ol['start_distance_median'])} / {_fmt(ol['start_hand_object_median'])} vs "
+                 f"{_fmt(ol['data_start_hand_object_median'])}"))
     return rows
 
 
@@ -716,13 +717,11 @@ def tracked_rows(tr: dict | None) -> list[tuple[str, str]]:
     locomotion, ``horizon`` None: the simulator shooting tracker, plain returns)."""
     if tr is None:
         return []
-    t, fid, gen = tr["tracked"], tr["fidelity"], tr["generated"]
+    fid, gen = tr["fidelity"], tr["generated"]
     locomotion = tr.get("horizon") is None
     rows = [(("true return top-k tracked in closed loop (simulator shooting tracker)" if locomotion else
               f"true return top-k tracked in closed loop (stop rule, {int(tr['horizon'])} steps)")
-             + ": mean / max before -> after",
-             f"{t['true_return_mean_before']:.4g} -> {t['true_return_mean_after']:.4g} / "
-             f"{t['true_return_max_before']:.4g} -> {t['true_return_max_after']:.4g}")]
+             + ": mean / max before -> after", _mean_max(tr["tracked"]))]
     if locomotion:
         rows.append(("tracker on the top-k: claimed -> tracked mean (scaled path error, median)",
                      f"{fid['claimed_mean']:.4g} -> {fid['tracked_mean']:.4g} ({_fmt(fid['path_error_median'])})"))
@@ -735,11 +734,8 @@ def tracked_rows(tr: dict | None) -> list[tuple[str, str]]:
     rows.append(("tracker on the top-k: recorded -> tracked mean (hand off its path, m, median)",
                  f"{fid['recorded_mean']:.4g} -> {fid['tracked_mean']:.4g} ({_fmt(fid['hand_deviation_median'])})"))
     if gen.get("off_path"):  # runs before session 32 did not record it
-        on = tr["tracked_on_path"]
         rows.append((f"the same without the {gen['off_path']} generated paths the tracker left further than any "
-                     "top-k path: mean / max before -> after",
-                     f"{on['true_return_mean_before']:.4g} -> {on['true_return_mean_after']:.4g} / "
-                     f"{on['true_return_max_before']:.4g} -> {on['true_return_max_after']:.4g}"))
+                     "top-k path: mean / max before -> after", _mean_max(tr["tracked_on_path"])))
     if gen["num_generated"]:
         rows.append(("generated in final set, tracked: return claimed -> tracked (hand off its path, m, median)",
                      f"{gen['claimed_stop_rule_mean']:.4g} -> {gen['tracked_stop_rule_mean']:.4g} "

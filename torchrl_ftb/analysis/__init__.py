@@ -2,6 +2,7 @@
 from torchrl_ftb.analysis.metrics import dynamics_error, improvement, novelty, toy_oracle_step, trajectory_distances
 from torchrl_ftb.analysis.plots import plot_flow_curves, plot_histograms, plot_scatter, save_figure
 from torchrl_ftb.analysis.replay import (
+    ended_early,
     episode_jobs,
     locomotion_open_loop_improvement,
     locomotion_replays,
@@ -16,6 +17,7 @@ from torchrl_ftb.analysis.tracking import locomotion_tracked_improvement, track_
 
 __all__ = [
     "dynamics_error",
+    "ended_early",
     "episode_jobs",
     "improvement",
     "locomotion_open_loop_improvement",

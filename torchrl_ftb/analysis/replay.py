@@ -152,6 +152,24 @@ def checked_generated(name: str, final: TensorDictBase, generated: torch.Tensor)
     return generated
 
 
+def ended_early(episode: dict, length: int) -> bool:
+    """Whether the env ended a locomotion replay or track (``episode["terminated"]``) before its trajectory's
+    ``length`` steps ran out (ending on the last step is not early).
+
+    Example:
+        >>> import numpy as np
+        >>> fell = {"reward": np.zeros(3), "terminated": True}  # ended by the env after 3 steps
+        >>> ended_early(fell, 10), ended_early(fell, 3)
+        (True, False)
+    """
+    return bool(episode["terminated"] and len(episode["reward"]) < int(length))
+
+
+def samples_mean(samples: list[dict], key: str) -> float | None:
+    """Mean of ``key`` over per-sample dicts (None without samples)."""
+    return float(np.mean([float(x[key]) for x in samples])) if samples else None
+
+
 def locomotion_sets(name: str, env_name: str, final: TensorDictBase, original: TensorDictBase,
                     generated: torch.Tensor) -> tuple[torch.Tensor, list[TensorDictBase], list[torch.Tensor]]:
     """The locomotion readings' shared input: ``(generated flags, [top-k, final set], their claimed returns)``, the
@@ -347,24 +365,20 @@ def locomotion_open_loop_improvement(final: TensorDictBase, original: TensorDict
         (True, 0.0)
     """
     generated, sets, claimed = locomotion_sets("locomotion_open_loop_improvement", env_name, final, original, generated)
-    replayed, episodes = [], []
+    replayed = []
     for t in tqdm(sets, desc=f"{env_name} open-loop replays (top-k, final set)", disable=not progress):
-        returns, eps = locomotion_replays(env_name, t)
+        returns, episodes = locomotion_replays(env_name, t)  # the last pass's (the final set's) episodes are kept
         replayed.append(returns)
-        episodes.append(list(zip(t["mask"].sum(-1).tolist(), eps)))
-    gen_rows = generated.nonzero().squeeze(-1).tolist()
-    samples = [{"length": int(n), "replay_length": len(ep["reward"]),
-                "replay_terminated": bool(ep["terminated"] and len(ep["reward"]) < n),
+    lengths = sets[1]["mask"].sum(-1).tolist()
+    samples = [{"length": int(lengths[i]), "replay_length": len(episodes[i]["reward"]),
+                "replay_terminated": ended_early(episodes[i], lengths[i]),
                 "claimed_plain": float(claimed[1][i]), "replayed_plain": float(replayed[1][i])}
-               for i, (n, ep) in ((i, episodes[1][i]) for i in gen_rows)]
-
-    def mean(key: str) -> float | None:
-        return float(np.mean([x[key] for x in samples])) if samples else None
-
+               for i in generated.nonzero().squeeze(-1).tolist()]
     return {"num_generated": len(samples), "horizon": None,
-            "replay_terminated_rate": mean("replay_terminated"),
+            "replay_terminated_rate": samples_mean(samples, "replay_terminated"),
             "replay_length_fraction_median": (float(np.median([x["replay_length"] / max(x["length"], 1) for x in samples]))
                                               if samples else None),
-            "claimed_plain_mean_generated": mean("claimed_plain"), "replayed_plain_mean_generated": mean("replayed_plain"),
+            "claimed_plain_mean_generated": samples_mean(samples, "claimed_plain"),
+            "replayed_plain_mean_generated": samples_mean(samples, "replayed_plain"),
             "improvement": {"plain": {"claimed": return_summary(*claimed), "replayed": return_summary(*replayed)}},
             "samples": samples}

@@ -30,12 +30,14 @@ from tqdm.auto import tqdm
 
 from torchrl_ftb.analysis.replay import (
     checked_final_set,
+    ended_early,
     episode_jobs,
     locomotion_sets,
     match_rows,
     metaworld_state_returns,
     nearest_start,
     replay_returns,
+    samples_mean,
 )
 from torchrl_ftb.data.labels import true_return
 from torchrl_ftb.datasets.metaworld import generate_metaworld_episodes
@@ -214,20 +216,17 @@ def locomotion_tracked_improvement(final: TensorDictBase, original: TensorDictBa
     def path_error(ep: dict) -> float:
         return float(ep["path_error"].mean()) if len(ep["path_error"]) else 0.0
 
-    samples = [{"length": n, "tracked_length": len(ep["reward"]),
-                "tracked_terminated": bool(ep["terminated"] and len(ep["reward"]) < n),
+    samples = [{"length": n, "tracked_length": len(ep["reward"]), "tracked_terminated": ended_early(ep, n),
                 "path_error": path_error(ep), "claimed_plain": float(claimed[1][i]), "tracked_plain": float(tracked[1][i])}
                for i, (n, ep) in ((i, episodes[1][i]) for i in generated.nonzero().squeeze(-1).tolist())]
     n_gen = len(samples)
-
-    def gen_mean(key: str) -> float | None:
-        return float(torch.tensor([float(x[key]) for x in samples]).mean()) if n_gen else None
 
     fidelity = {"claimed_mean": float(claimed[0].mean()), "tracked_mean": float(tracked[0].mean()),
                 "path_error_median": float(torch.tensor([path_error(ep) for _, ep in episodes[0]]).median())}
     gen_summary = {"num_generated": n_gen,
                    "path_error_median": float(torch.tensor([x["path_error"] for x in samples]).median()) if n_gen else None,
-                   "tracked_terminated_rate": gen_mean("tracked_terminated"),
-                   "claimed_plain_mean": gen_mean("claimed_plain"), "tracked_plain_mean": gen_mean("tracked_plain")}
+                   "tracked_terminated_rate": samples_mean(samples, "tracked_terminated"),
+                   "claimed_plain_mean": samples_mean(samples, "claimed_plain"),
+                   "tracked_plain_mean": samples_mean(samples, "tracked_plain")}
     return {"horizon": None, "tracked": return_summary(*tracked), "claimed": return_summary(*claimed),
             "fidelity": fidelity, "generated": gen_summary, "samples": samples}
