@@ -217,17 +217,23 @@ def replay_locomotion_actions(env_name: str, first_observation: torch.Tensor,
     for o, a in zip(obs, actions):
         act, _ = _flat(a, "actions")
         _check_dims(u, o[None], act[:1] if len(act) else np.zeros((1, u.model.nu)), env_id)
-        _set_from_obs(u, o)
-        rewards, states, terminated = [], [u._get_obs()], False
-        for step in act:
-            nxt, reward, terminated, _, _ = u.step(np.clip(step, -1.0, 1.0))
-            rewards.append(reward)
-            states.append(nxt)
-            if terminated:
-                break
-        out.append({"reward": np.asarray(rewards, np.float64), "observation": np.stack(states),
-                    "terminated": bool(terminated)})
+        out.append(_run_episode(u, o, len(act), lambda t, act=act: np.clip(act[t], -1.0, 1.0)))
     return out
+
+
+def _run_episode(u, first_observation: np.ndarray, steps: int, choose) -> dict[str, np.ndarray | bool]:
+    """One episode from the state rebuilt from ``first_observation``: ``u.step(choose(t))`` for ``t < steps``, until
+    the env terminates it (the one simulator loop of :func:`replay_locomotion_actions` and
+    :func:`track_locomotion_paths`; ``choose`` may read the simulator's current state)."""
+    _set_from_obs(u, first_observation)
+    rewards, states, terminated = [], [u._get_obs()], False
+    for t in range(steps):
+        nxt, reward, terminated, _, _ = u.step(choose(t))
+        rewards.append(reward)
+        states.append(nxt)
+        if terminated:
+            break
+    return {"reward": np.asarray(rewards, np.float64), "observation": np.stack(states), "terminated": bool(terminated)}
 
 
 def track_locomotion_paths(env_name: str, paths: torch.Tensor, actions: torch.Tensor, lengths: list[int], *,
@@ -279,32 +285,31 @@ def track_locomotion_paths(env_name: str, paths: torch.Tensor, actions: torch.Te
     _check_dims(u, paths_np[:, 0], acts[:, 0], env_id)
     inv_scale = 1.0 / (np.ones(paths_np.shape[-1]) if scale is None else np.asarray(scale, np.float64))
     rng = np.random.default_rng(seed)
+
+    def shoot(path: np.ndarray, act: np.ndarray, n: int):
+        def choose(t: int) -> np.ndarray:
+            action = np.clip(act[t], -1.0, 1.0)
+            if t + 1 >= n or candidates == 1:
+                return action
+            qpos, qvel = u.data.qpos.copy(), u.data.qvel.copy()
+            tries = np.concatenate([
+                action[None], rng.uniform(-1.0, 1.0, (num_uniform, action.shape[-1])),
+                np.clip(action + noise * rng.standard_normal((candidates - 1 - num_uniform, action.shape[-1])),
+                        -1.0, 1.0)])
+            dist = np.empty(candidates)
+            for j, a in enumerate(tries):
+                u.set_state(qpos, qvel)
+                u.do_simulation(a, u.frame_skip)
+                dist[j] = np.linalg.norm((u._get_obs() - path[t + 1]) * inv_scale)
+            u.set_state(qpos, qvel)
+            return tries[int(dist.argmin())]
+
+        return choose
+
     out = []
     for path, act, n in zip(paths_np, acts, lengths):
-        _set_from_obs(u, path[0])
-        rewards, states, errors, terminated = [], [u._get_obs()], [], False
-        for t in range(int(n)):
-            action = np.clip(act[t], -1.0, 1.0)
-            if t + 1 < int(n) and candidates > 1:
-                qpos, qvel = u.data.qpos.copy(), u.data.qvel.copy()
-                tries = np.concatenate([
-                    action[None], rng.uniform(-1.0, 1.0, (num_uniform, action.shape[-1])),
-                    np.clip(action + noise * rng.standard_normal((candidates - 1 - num_uniform, action.shape[-1])),
-                            -1.0, 1.0)])
-                dist = np.empty(candidates)
-                for j, a in enumerate(tries):
-                    u.set_state(qpos, qvel)
-                    u.do_simulation(a, u.frame_skip)
-                    dist[j] = np.linalg.norm((u._get_obs() - path[t + 1]) * inv_scale)
-                u.set_state(qpos, qvel)
-                action = tries[int(dist.argmin())]
-            nxt, reward, terminated, _, _ = u.step(action)
-            rewards.append(reward)
-            states.append(nxt)
-            if t + 1 < int(n):
-                errors.append(float(np.linalg.norm((nxt - path[t + 1]) * inv_scale)))
-            if terminated:
-                break
-        out.append({"reward": np.asarray(rewards, np.float64), "observation": np.stack(states),
-                    "terminated": bool(terminated), "path_error": np.asarray(errors, np.float64)})
+        ep = _run_episode(u, path[0], int(n), shoot(path, act, int(n)))
+        reached = min(len(ep["observation"]), int(n))  # the steps that have a path observation to compare with
+        ep["path_error"] = np.linalg.norm((ep["observation"][1:reached] - path[1:reached]) * inv_scale, axis=-1)
+        out.append(ep)
     return out
