@@ -37,7 +37,7 @@ from torchrl_ftb.data import atomic_torch_save, atomic_write_text
 from torchrl_ftb.data.labels import make_scripted_labels, make_teacher
 from torchrl_ftb.preference import QUERY_STRATEGIES, make_query_labels
 from torchrl_ftb.datasets import dataset_kwargs, make_dataset
-from torchrl_ftb.envs import check_env_matches, env_kind, make_env, normalized_score_fn, oracle_step, true_reward_fn
+from torchrl_ftb.envs import check_env_matches, dynamics_oracle, env_kind, make_env, normalized_score_fn, true_reward_fn
 from torchrl_ftb.policy import evaluate_policy
 from torchrl_ftb.provenance import git_commit, machine_info, make_logger
 
@@ -113,7 +113,7 @@ def make_supplement(cfg: DictConfig, trajs, *, device, logger) -> tuple[Any, dic
         synthetic={} if aug.synthetic.num_samples is None else {"num_samples": int(aug.synthetic.num_samples)},
         num_blocks=int(aug.num_blocks), seed=int(cfg.seed),
         true_reward_fn=true_reward_fn(cfg.env.name) if aug.true_reward else None,
-        oracle_step=functools.partial(oracle_step, cfg.env.name) if locomotion else None,
+        oracle_step=dynamics_oracle(cfg.env.name) if locomotion else None,
         replay_fn=(lambda t: locomotion_replays(str(cfg.env.name), t)[0]) if locomotion else None,
         device=device, logger=logger, progress=bool(cfg.progress),
     )

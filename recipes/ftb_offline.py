@@ -44,6 +44,7 @@ from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDict, TensorDictBase
 
 from torchrl_ftb.analysis import (
+    dynamics_error,
     locomotion_open_loop_improvement,
     locomotion_tracked_improvement,
     novelty,
@@ -61,6 +62,7 @@ from torchrl_ftb.diffusion.train import CHECKPOINT_NAME
 from torchrl_ftb.envs import (
     METAWORLD_PHYSICS_PROXIES,
     check_env_matches,
+    dynamics_oracle,
     env_kind,
     fit_metaworld_contact_reach,
     fit_metaworld_hand_model,
@@ -456,6 +458,15 @@ def metaworld_validity(generated: TensorDictBase, data: TensorDictBase) -> dict[
     return out
 
 
+def oracle_validity(generated: TensorDictBase, data: TensorDictBase,
+                    oracle: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]) -> dict[str, float]:
+    """Validity of the flow's accepted samples as paper §4.3 scores it, on envs with a one-step oracle
+    (toy, locomotion; :func:`~torchrl_ftb.envs.dynamics_oracle`): the mean error of their transitions
+    against the env's own dynamics, per observation dimension, beside the dataset's as the reference."""
+    return {f"dynamics_error_{name}": dynamics_error(td, oracle)["mean"] if td.batch_size[0] else float("nan")
+            for name, td in (("generated", generated), ("dataset", data))}
+
+
 def flow_filter(cfg: DictConfig) -> str:
     """``flow.filter``: ``score_model`` (FTB: s_psi) or ``true_return`` (an oracle bound, not PbRL)."""
     value = str(cfg.flow.get("filter", "score_model"))
@@ -777,8 +788,11 @@ def final_table(metrics: dict) -> list[tuple[str, str]]:
         ("generated trajectories in final set", _fmt(fl["fraction_generated_in_final"])),
         ("score Spearman vs true return", _fmt(metrics["score_quality"].get("spearman_return", float("nan")))),
     ]
-    if "validity" in metrics.get("analysis", {}):
-        v = metrics["analysis"]["validity"]
+    v = metrics.get("analysis", {}).get("validity", {})
+    if "dynamics_error_generated" in v:
+        rows.append(("accepted samples: one-step dynamics error per observation dim (dataset)",
+                     f"{_fmt(v['dynamics_error_generated'])} ({_fmt(v['dynamics_error_dataset'])})"))
+    if "frame_stack_error_generated" in v:
         rows.append(("accepted samples: frame-stack / hand-model error / contactless object path, m (dataset)",
                      " / ".join(f"{_fmt(v[f'{k}_generated'])} ({_fmt(v[f'{k}_dataset'])})"
                                 for k in METAWORLD_PHYSICS_PROXIES)))
@@ -1038,6 +1052,9 @@ def run(cfg: DictConfig) -> dict:
         analysis["novelty"] = {"generated_mean": nov["generated_mean"], "perturbed_mean": nov["perturbed_mean"]}
         if kind == "metaworld":
             analysis["validity"] = metaworld_validity(flow["generated"], trajs)
+        else:
+            analysis["validity"] = oracle_validity(
+                flow["generated"], trajs, dynamics_oracle(cfg.env.name, toy_horizon=int(cfg.dataset.horizon)))
     t0 = time.perf_counter()
     if (open_loop := open_loop_analysis(cfg, run_dir, flow, trajs, meta, progress=progress)) is not None:
         analysis["open_loop"] = open_loop

@@ -323,3 +323,15 @@ def test_locomotion_tracker_reproduces_a_recorded_path_and_tells_reachable_from_
     assert "true return top-k tracked in closed loop (simulator shooting tracker): mean / max before -> after" in table
     assert table["tracker on the top-k: claimed -> tracked mean (scaled path error, median)"].startswith(
         f"{recorded_return:.4g} -> {recorded_return:.4g}")
+
+
+def test_dynamics_oracle_scores_a_recorded_path_valid_and_a_claimed_one_not():
+    """The recipe's validity analysis on locomotion: a recorded hopper trajectory obeys the simulator's one-step
+    dynamics (error ~0), the claimed standing path under full torque does not."""
+    from torchrl_ftb.analysis import dynamics_error
+    from torchrl_ftb.envs import dynamics_oracle
+
+    final, recorded, _ = _recorded_and_a_falling_claim()
+    oracle = dynamics_oracle("hopper")
+    assert dynamics_error(recorded, oracle)["mean"] < 1e-4
+    assert dynamics_error(final[1:], oracle)["mean"] > 1e-2

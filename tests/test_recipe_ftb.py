@@ -108,6 +108,8 @@ def test_kill_during_diffuser_training_then_resume_end_to_end(tmp_path):
     assert redone["flow"]["true_return_mean_before"] == pytest.approx(metrics["flow"]["true_return_mean_before"])
     assert "true_return_filled_mean_before" in redone["flow"] and "true_return_filled_mean_before" not in metrics["flow"]
     assert metrics["analysis"]["improvement"]["true_return_mean_after"] == metrics["flow"]["true_return_mean_after"]
+    if "novelty" in metrics["analysis"]:  # samples were accepted: their validity beside the data's, toy oracle
+        assert metrics["analysis"]["validity"]["dynamics_error_dataset"] < 1e-5
     assert redone["analysis"]["improvement"]["true_return_filled_mean_after"] == redone["flow"]["true_return_filled_mean_after"]
     assert (run_dir / "plots" / "true_return_filled_before_after.png").is_file()
     gen = load_script(ROOT / "bench" / "flow_generated.py", "bench_flow_generated")
@@ -396,6 +398,29 @@ def test_physical_validity_checks_compose(report_rows):
     assert v["contactless_object_path_generated"] != v["contactless_object_path_generated"]  # NaN
     assert v["hand_model_error_generated"] > 0
 
+
+
+def test_oracle_validity_on_envs_with_one_step_dynamics(report_rows):
+    """Toy / locomotion: the accepted samples' one-step error against the env's own dynamics, beside the
+    dataset's (which obeys them); Meta-World has no such oracle and keeps its proxies."""
+    from torchrl_ftb.envs import dynamics_oracle
+    from torchrl_ftb.testing import make_toy_dataset
+
+    recipe = _recipe()
+    data = make_toy_dataset(num_trajectories=8, horizon=16, seed=0)
+    samples = data[:4].select("observation", "action", "mask").clone()
+    samples["action"] = -samples["action"]  # the observations no longer follow from the actions
+    v = recipe.oracle_validity(samples, data, dynamics_oracle("toy", toy_horizon=16))
+    assert v["dynamics_error_dataset"] < 1e-5 < 1e-2 < v["dynamics_error_generated"]
+    empty = recipe.oracle_validity(samples[:0], data, dynamics_oracle("toy", toy_horizon=16))
+    assert empty["dynamics_error_generated"] != empty["dynamics_error_generated"]  # NaN, not a failed run
+    rows = report_rows(recipe, analysis={"validity": v}, env="toy")
+    row = rows["accepted samples: one-step dynamics error per observation dim (dataset)"]
+    assert row == f"{v['dynamics_error_generated']:.4g} ({v['dynamics_error_dataset']:.4g})"
+    assert not any(k.startswith("accepted samples: frame-stack") for k in rows)
+    assert dynamics_oracle("button-press-v3") is None
+    with pytest.raises(ValueError, match="toy_horizon"):
+        dynamics_oracle("toy")
 
 
 def test_hand_step_check_catches_a_seam_the_mean_hand_model_error_hides():

@@ -1,10 +1,11 @@
 """Environments: torchrl env factories (Meta-World v3, MuJoCo locomotion), the success info
 reader, D4RL normalized scores, ground-truth rewards and the locomotion dynamics oracle, and
-the name -> env/true reward/score wiring (``env_kind``, ``make_env``, ``true_reward_fn``,
-``normalized_score_fn``)."""
+the name -> env/true reward/dynamics/score wiring (``env_kind``, ``make_env``, ``true_reward_fn``,
+``dynamics_oracle``, ``normalized_score_fn``)."""
 from torchrl_ftb.envs.factory import (
     EnvKind,
     check_env_matches,
+    dynamics_oracle,
     env_kind,
     make_env,
     normalized_score_fn,
@@ -63,6 +64,7 @@ __all__ = [
     "check_metaworld_task",
     "configure_goal",
     "d4rl_normalized_score",
+    "dynamics_oracle",
     "env_kind",
     "fit_metaworld_contact_reach",
     "fit_metaworld_hand_model",

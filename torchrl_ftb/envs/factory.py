@@ -33,6 +33,7 @@ from torchrl_ftb.envs.locomotion import (
     d4rl_normalized_score,
     locomotion_true_reward,
     make_locomotion_env,
+    oracle_step,
 )
 from torchrl_ftb.envs.metaworld import (
     METAWORLD_OBSERVATION_LAYOUT,
@@ -42,8 +43,8 @@ from torchrl_ftb.envs.metaworld import (
 )
 
 __all__ = [
-    "EnvKind", "check_env_matches", "env_kind", "make_env", "normalized_score_fn", "observation_layout",
-    "true_reward_fn",
+    "EnvKind", "check_env_matches", "dynamics_oracle", "env_kind", "make_env", "normalized_score_fn",
+    "observation_layout", "true_reward_fn",
 ]
 
 EnvKind = Literal["toy", "metaworld", "locomotion"]
@@ -183,6 +184,41 @@ def true_reward_fn(name: str, *, with_success: bool = False) -> Callable[[torch.
     if kind == "metaworld":
         return functools.partial(_metaworld_reward, name)
     return functools.partial(locomotion_true_reward, name)
+
+
+def dynamics_oracle(name: str, *, toy_horizon: int | None = None
+                    ) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None:
+    """Ground-truth one-step dynamics ``fn(observation, action) -> next observation`` of ``name``'s env,
+    or ``None`` where there is none to call.
+
+    Toy: :func:`torchrl_ftb.analysis.toy_oracle_step` (closed form; its time feature needs
+    ``toy_horizon``). Locomotion: :func:`torchrl_ftb.envs.oracle_step` (the simulator rebuilt from
+    each observation). Meta-World: ``None``: its observation holds neither joint velocities nor the
+    object's full state, so no simulator state can be rebuilt from it (its physics proxies,
+    :func:`metaworld_physics_errors`, stand in). Meant for the validity analysis
+    (:func:`torchrl_ftb.analysis.dynamics_error`).
+
+    Raises:
+        ValueError: unknown name; toy without ``toy_horizon``.
+
+    Example:
+        >>> import torch
+        >>> step = dynamics_oracle("toy", toy_horizon=8)
+        >>> step(torch.zeros(2, 3), torch.ones(2, 2)).shape
+        torch.Size([2, 3])
+        >>> dynamics_oracle("button-press-v3") is None
+        True
+    """
+    kind = env_kind(name)
+    if kind == "metaworld":
+        return None
+    if kind == "locomotion":
+        return functools.partial(oracle_step, name)
+    if toy_horizon is None:
+        raise ValueError("dynamics_oracle('toy'): pass toy_horizon (the toy dataset's horizon)")
+    from torchrl_ftb.analysis.metrics import toy_oracle_step  # here: the analysis package pulls in matplotlib
+
+    return functools.partial(toy_oracle_step, horizon=int(toy_horizon))
 
 
 def _d4rl_score(name: str, mean_return: float) -> float:
