@@ -547,6 +547,15 @@ def tracker_steps(cfg: DictConfig) -> int:
     return steps
 
 
+def tracker_lookahead(cfg: DictConfig) -> int:
+    """``tracker.lookahead``: steps the locomotion shooting tracker of ``analysis.tracked`` scores each candidate
+    action over (>= 1; default 1, greedy; :func:`torchrl_ftb.envs.track_locomotion_paths`)."""
+    steps = int(cfg.get("tracker", {}).get("lookahead", 1))
+    if steps < 1:
+        raise ValueError(f"tracker.lookahead={steps}: must be >= 1")
+    return steps
+
+
 def path_tracker(cfg: DictConfig, run: RunDir, trajs: TensorDictBase, *, progress: bool) -> PathTracker:
     """The goal-conditioned inverse-dynamics tracker that ``bc.relabel_actions`` and ``analysis.tracked`` share
     (:func:`torchrl_ftb.policy.fit_path_tracker` on the dataset, ``tracker.steps`` Adam steps, seeded by
@@ -662,7 +671,8 @@ def tracked_analysis(cfg: DictConfig, run: RunDir, flow: dict, trajs: TensorDict
     source = torch.as_tensor(flow["source_step"]) > 0
     if env_kind(cfg.env.name) == "locomotion":  # the simulator as the tracker's model, from each path's own start
         out = locomotion_tracked_improvement(flow["trajectories"], flow["original"], source,
-                                             env_name=str(cfg.env.name), seed=int(cfg.seed), progress=progress)
+                                             env_name=str(cfg.env.name), lookahead=tracker_lookahead(cfg),
+                                             seed=int(cfg.seed), progress=progress)
         extra = {}
     elif meta.get("domain") == "metaworld" and "per_trajectory" in meta:
         horizon = _optional_int(cfg.flow.get("true_return_horizon")) or int(cfg.env.max_episode_steps)
@@ -730,7 +740,9 @@ def tracked_rows(tr: dict | None) -> list[tuple[str, str]]:
         return []
     fid, gen = tr["fidelity"], tr["generated"]
     locomotion = tr.get("horizon") is None
-    rows = [(("true return top-k tracked in closed loop (simulator shooting tracker)" if locomotion else
+    lookahead = int(tr.get("lookahead") or 1)  # runs before session 35 did not record it: greedy
+    shooting = "simulator shooting tracker" + (f", {lookahead}-step lookahead" if lookahead > 1 else "")
+    rows = [((f"true return top-k tracked in closed loop ({shooting})" if locomotion else
               f"true return top-k tracked in closed loop (stop rule, {int(tr['horizon'])} steps)")
              + ": mean / max before -> after", _mean_max(tr["tracked"]))]
     if locomotion:
@@ -878,6 +890,7 @@ def run(cfg: DictConfig) -> dict:
     check_policy_options(cfg)
     inpaint_start(cfg)
     tracker_steps(cfg)
+    tracker_lookahead(cfg)
     if flow_filter(cfg) == "true_return" and not cfg.flow.true_reward:
         raise ValueError("flow.filter=true_return ranks and accepts by the ground-truth return: it needs "
                          "flow.true_reward=true")

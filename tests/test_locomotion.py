@@ -335,3 +335,31 @@ def test_dynamics_oracle_scores_a_recorded_path_valid_and_a_claimed_one_not():
     oracle = dynamics_oracle("hopper")
     assert dynamics_error(recorded, oracle)["mean"] < 1e-4
     assert dynamics_error(final[1:], oracle)["mean"] > 1e-2
+
+
+def test_lookahead_tracker_reproduces_a_recorded_path_and_is_checked(report_rows):
+    """With a lookahead the shooting tracker still reproduces a recorded path exactly (its own actions score 0 over
+    every lookahead step); the recipe checks the option at start and names it in the report row."""
+    from pathlib import Path
+
+    from omegaconf import OmegaConf
+
+    from torchrl_ftb.analysis import locomotion_tracked_improvement
+    from torchrl_ftb.envs import track_locomotion_paths
+    from torchrl_ftb.testing import load_script
+
+    final, recorded, recorded_return = _recorded_and_a_falling_claim()
+    out = locomotion_tracked_improvement(final, recorded, torch.tensor([False, True]), env_name="hopper",
+                                         candidates=8, lookahead=4)
+    assert out["lookahead"] == 4
+    assert out["tracked"]["true_return_mean_before"] == pytest.approx(recorded_return, abs=1e-3)
+    assert out["fidelity"]["path_error_median"] < 1e-4
+    with pytest.raises(ValueError, match="lookahead >= 1"):
+        track_locomotion_paths("hopper", recorded["observation"], recorded["action"], [10], lookahead=0)
+    recipe = load_script(Path(__file__).resolve().parents[1] / "recipes" / "ftb_offline.py", "recipe_lookahead")
+    with pytest.raises(ValueError, match="tracker.lookahead=0"):
+        recipe.tracker_lookahead(OmegaConf.create({"tracker": {"lookahead": 0}}))
+    assert recipe.tracker_lookahead(OmegaConf.create({})) == 1
+    table = report_rows(recipe, analysis={"tracked": out}, env="hopper")
+    assert "true return top-k tracked in closed loop (simulator shooting tracker, 4-step lookahead): mean / max " \
+           "before -> after" in table

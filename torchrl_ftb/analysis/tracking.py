@@ -176,20 +176,21 @@ def tracked_improvement(
 
 def locomotion_tracked_improvement(final: TensorDictBase, original: TensorDictBase, generated: torch.Tensor, *,
                                    env_name: str, candidates: int = 64, noise: float = 0.3, uniform: float = 0.5,
-                                   seed: int = 0, progress: bool = False) -> dict:
+                                   lookahead: int = 1, seed: int = 0, progress: bool = False) -> dict:
     """The flow's improvement (original top-k -> final set) on locomotion with every path tracked in closed loop.
 
     Every trajectory of both sets is tracked from its own first state by
-    :func:`~torchrl_ftb.envs.track_locomotion_paths` (``candidates``, ``noise``, ``uniform``, ``seed``), the distance scaled
-    by the top-k's per-dimension observation std; the return is the simulator's over the steps until the path
-    ends or the env ends the episode.
+    :func:`~torchrl_ftb.envs.track_locomotion_paths` (``candidates``, ``noise``, ``uniform``, ``lookahead``,
+    ``seed``), the distance scaled by the top-k's per-dimension observation std; the return is the simulator's
+    over the steps until the path ends or the env ends the episode.
 
     Args:
         final, original, generated, env_name, progress: as
             :func:`~torchrl_ftb.analysis.locomotion_open_loop_improvement`.
 
     Returns:
-        ``horizon`` (None: plain returns), ``tracked`` and ``claimed`` (``return_summary``, top-k -> final),
+        ``horizon`` (None: plain returns), ``lookahead``, ``tracked`` and ``claimed`` (``return_summary``, top-k ->
+        final),
         ``fidelity`` (the top-k's claimed vs tracked mean and median scaled path error: ~0 for recorded paths),
         ``generated`` (count, median scaled path error, share the env ended early, mean claimed and tracked
         return) and ``samples`` (per generated trajectory).
@@ -209,7 +210,8 @@ def locomotion_tracked_improvement(final: TensorDictBase, original: TensorDictBa
     for t in tqdm(sets, desc=f"{env_name} tracked paths (top-k, final set)", disable=not progress):
         lengths = [int(n) for n in t["mask"].sum(-1).tolist()]
         eps = track_locomotion_paths(env_name, t["observation"], t["action"], lengths, scale=scale,
-                                     candidates=candidates, noise=noise, uniform=uniform, seed=seed)
+                                     candidates=candidates, noise=noise, uniform=uniform, lookahead=lookahead,
+                                     seed=seed)
         tracked.append(torch.tensor([float(ep["reward"].sum()) for ep in eps], dtype=torch.float64))
         episodes.append(list(zip(lengths, eps)))
 
@@ -228,5 +230,6 @@ def locomotion_tracked_improvement(final: TensorDictBase, original: TensorDictBa
                    "tracked_terminated_rate": samples_mean(samples, "tracked_terminated"),
                    "claimed_plain_mean": samples_mean(samples, "claimed_plain"),
                    "tracked_plain_mean": samples_mean(samples, "tracked_plain")}
-    return {"horizon": None, "tracked": return_summary(*tracked), "claimed": return_summary(*claimed),
+    return {"horizon": None, "lookahead": int(lookahead), "tracked": return_summary(*tracked),
+            "claimed": return_summary(*claimed),
             "fidelity": fidelity, "generated": gen_summary, "samples": samples}

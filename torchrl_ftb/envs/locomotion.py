@@ -238,16 +238,21 @@ def _run_episode(u, first_observation: np.ndarray, steps: int, choose) -> dict[s
 
 def track_locomotion_paths(env_name: str, paths: torch.Tensor, actions: torch.Tensor, lengths: list[int], *,
                            scale: torch.Tensor | np.ndarray | None = None, candidates: int = 64, noise: float = 0.3,
-                           uniform: float = 0.5, seed: int = 0) -> list[dict[str, np.ndarray | bool]]:
-    """Closed-loop tracking of observation paths with the simulator as the model: a one-step shooting controller.
+                           uniform: float = 0.5, lookahead: int = 1, seed: int = 0
+                           ) -> list[dict[str, np.ndarray | bool]]:
+    """Closed-loop tracking of observation paths with the simulator as the model: a shooting controller.
 
     From the state rebuilt from a path's first observation, every step tries ``candidates`` actions (the path's
     own action; of the other ``candidates - 1``, the share ``uniform`` drawn uniformly from the action box
     ``[-1, 1]``, the rest Gaussian perturbations of the path's action, std ``noise``, clipped) from the state
     the simulator actually reached, keeps the one whose next observation lands nearest the path's next
     one (distance per dimension divided by ``scale``), and steps the env with it (its reward and termination).
-    The last step, with no next observation to aim at, takes the path's own action. A path the simulator can
-    follow (a recorded one) is reproduced exactly: its own action lands on it.
+    With ``lookahead = L > 1`` each candidate is scored over the next ``L`` steps instead: after its first
+    action it applies the path's own next actions shifted by the same offset (clipped), and the distances to
+    the path's next ``L`` observations are summed (random shooting; a greedy one-step tracker can pick an
+    action that lands on the next observation from a state that cannot follow the rest). Only the first
+    action is executed. The last step, with no next observation to aim at, takes the path's own action. A path
+    the simulator can follow (a recorded one) is reproduced exactly: its own actions land on it.
 
     Args:
         env_name: locomotion env (see :func:`locomotion_env_id`).
@@ -258,6 +263,7 @@ def track_locomotion_paths(env_name: str, paths: torch.Tensor, actions: torch.Te
         noise: std of the perturbations.
         uniform: share of the other candidates drawn uniformly from the action box (any action, not only ones
             near the path's own).
+        lookahead: steps each candidate is scored over (>= 1; 1: greedy one-step tracking).
         seed: seeds the perturbations.
 
     Returns:
@@ -271,9 +277,9 @@ def track_locomotion_paths(env_name: str, paths: torch.Tensor, actions: torch.Te
         >>> bool(np.allclose(ep["reward"], td["next", "reward"].squeeze(-1).numpy(), atol=1e-4))
         True
     """
-    if candidates < 1 or not 0.0 <= uniform <= 1.0:
-        raise ValueError(f"track_locomotion_paths: need candidates >= 1 and uniform in [0, 1], got {candidates}, "
-                         f"{uniform}")
+    if candidates < 1 or not 0.0 <= uniform <= 1.0 or lookahead < 1:
+        raise ValueError(f"track_locomotion_paths: need candidates >= 1, uniform in [0, 1] and lookahead >= 1, got "
+                         f"{candidates}, {uniform}, {lookahead}")
     num_uniform = int(round(uniform * (candidates - 1)))
     env_id = locomotion_env_id(env_name)
     u = _sim(env_id)
@@ -296,11 +302,13 @@ def track_locomotion_paths(env_name: str, paths: torch.Tensor, actions: torch.Te
                 action[None], rng.uniform(-1.0, 1.0, (num_uniform, action.shape[-1])),
                 np.clip(action + noise * rng.standard_normal((candidates - 1 - num_uniform, action.shape[-1])),
                         -1.0, 1.0)])
-            dist = np.empty(candidates)
+            offsets = tries - action
+            dist = np.zeros(candidates)
             for j, a in enumerate(tries):
                 u.set_state(qpos, qvel)
-                u.do_simulation(a, u.frame_skip)
-                dist[j] = np.linalg.norm((u._get_obs() - path[t + 1]) * inv_scale)
+                for k in range(min(lookahead, n - 1 - t)):
+                    u.do_simulation(a if k == 0 else np.clip(act[t + k] + offsets[j], -1.0, 1.0), u.frame_skip)
+                    dist[j] += np.linalg.norm((u._get_obs() - path[t + 1 + k]) * inv_scale)
             u.set_state(qpos, qvel)
             return tries[int(dist.argmin())]
 
