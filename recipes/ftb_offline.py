@@ -45,10 +45,13 @@ from tensordict import TensorDict, TensorDictBase
 
 from torchrl_ftb.analysis import (
     dynamics_error,
+    fit_dynamics_reference,
     locomotion_open_loop_improvement,
     locomotion_tracked_improvement,
     novelty,
     open_loop_improvement,
+    per_step_mean,
+    plot_curves,
     plot_flow_curves,
     plot_histograms,
     plot_scatter,
@@ -459,12 +462,31 @@ def metaworld_validity(generated: TensorDictBase, data: TensorDictBase) -> dict[
 
 
 def oracle_validity(generated: TensorDictBase, data: TensorDictBase,
-                    oracle: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]) -> dict[str, float]:
+                    oracle: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], *, reference_steps: int = 0,
+                    seed: int = 0) -> tuple[dict[str, float], torch.Tensor | None]:
     """Validity of the flow's accepted samples as paper §4.3 scores it, on envs with a one-step oracle
     (toy, locomotion; :func:`~torchrl_ftb.envs.dynamics_oracle`): the mean error of their transitions
-    against the env's own dynamics, per observation dimension, beside the dataset's as the reference."""
-    return {f"dynamics_error_{name}": dynamics_error(td, oracle)["mean"] if td.batch_size[0] else float("nan")
-            for name, td in (("generated", generated), ("dataset", data))}
+    against the env's own dynamics, per observation dimension, beside the dataset's (~0) and, with
+    ``reference_steps > 0``, beside the paper's reference scale: an MLP one-step model fitted on the dataset, scored
+    on held-out trajectories (:func:`torchrl_ftb.analysis.fit_dynamics_reference`). Returns the summary and the
+    samples' error by step within the trajectory (``[H]``, None without samples; Fig. 4 right)."""
+    out, curve = {}, None
+    for name, td in (("generated", generated), ("dataset", data)):
+        err = dynamics_error(td, oracle) if td.batch_size[0] else None
+        out[f"dynamics_error_{name}"] = err["mean"] if err is not None else float("nan")
+        if name == "generated" and err is not None:
+            curve = per_step_mean(err["per_step"], err["valid"])
+    if reference_steps > 0:
+        out["dynamics_error_mlp_heldout"] = fit_dynamics_reference(data, steps=reference_steps, seed=seed)["heldout_error"]
+    return out, curve
+
+
+def validity_reference_steps(cfg: DictConfig) -> int:
+    """``analysis.validity_reference_steps``: Adam steps of the MLP dynamics model of :func:`oracle_validity` (0: none)."""
+    steps = int(cfg.get("analysis", {}).get("validity_reference_steps", 0))
+    if steps < 0:
+        raise ValueError(f"analysis.validity_reference_steps={steps}: must be >= 0 (0: no reference model)")
+    return steps
 
 
 def flow_filter(cfg: DictConfig) -> str:
@@ -804,6 +826,9 @@ def final_table(metrics: dict) -> list[tuple[str, str]]:
     if "dynamics_error_generated" in v:
         rows.append(("accepted samples: one-step dynamics error per observation dim (dataset)",
                      f"{_fmt(v['dynamics_error_generated'])} ({_fmt(v['dynamics_error_dataset'])})"))
+        if "dynamics_error_mlp_heldout" in v:
+            rows.append(("the same of an MLP one-step model on held-out real transitions (the paper's reference)",
+                         _fmt(v["dynamics_error_mlp_heldout"])))
     if "frame_stack_error_generated" in v:
         rows.append(("accepted samples: frame-stack / hand-model error / contactless object path, m (dataset)",
                      " / ".join(f"{_fmt(v[f'{k}_generated'])} ({_fmt(v[f'{k}_dataset'])})"
@@ -891,6 +916,7 @@ def run(cfg: DictConfig) -> dict:
     inpaint_start(cfg)
     tracker_steps(cfg)
     tracker_lookahead(cfg)
+    validity_reference_steps(cfg)
     if flow_filter(cfg) == "true_return" and not cfg.flow.true_reward:
         raise ValueError("flow.filter=true_return ranks and accepts by the ground-truth return: it needs "
                          "flow.true_reward=true")
@@ -1066,8 +1092,16 @@ def run(cfg: DictConfig) -> dict:
         if kind == "metaworld":
             analysis["validity"] = metaworld_validity(flow["generated"], trajs)
         else:
-            analysis["validity"] = oracle_validity(
-                flow["generated"], trajs, dynamics_oracle(cfg.env.name, toy_horizon=int(cfg.dataset.horizon)))
+            analysis["validity"], curve = oracle_validity(
+                flow["generated"], trajs, dynamics_oracle(cfg.env.name, toy_horizon=int(cfg.dataset.horizon)),
+                reference_steps=validity_reference_steps(cfg), seed=int(cfg.seed))
+            v = analysis["validity"]
+            plot_curves({"accepted samples, against the env's dynamics": curve}, plots / "validity_per_step.png",
+                        xlabel="step h within the trajectory", ylabel="|s' - oracle(s, a)|_1 / obs dim", log_y=True,
+                        levels={k: v[f"dynamics_error_{key}"] for k, key in
+                                (("MLP model on held-out real transitions", "mlp_heldout"),
+                                 ("real transitions", "dataset")) if v.get(f"dynamics_error_{key}", 0) > 0},
+                        title=f"validity of the flow's samples — {cfg.env.name}")
     t0 = time.perf_counter()
     if (open_loop := open_loop_analysis(cfg, run_dir, flow, trajs, meta, progress=progress)) is not None:
         analysis["open_loop"] = open_loop

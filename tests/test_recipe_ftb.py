@@ -28,7 +28,7 @@ TINY = [
     "diffuser.overrides={hidden_dim:16,cond_dim:16}",
     "diffuser.checkpoint_every=2", "diffuser.sampler=ddim", "diffuser.sample_steps=4", "flow.top_k=8",
     "flow.max_flow_steps=2", "bc.steps=40", "bc.batch_size=128", "bc.hidden=[32,32]", "bc.checkpoint_every=10",
-    "eval.num_episodes=2", "progress=false", "logger.backend=csv",
+    "eval.num_episodes=2", "analysis.validity_reference_steps=20", "progress=false", "logger.backend=csv",
 ]
 
 pytestmark = [pytest.mark.filterwarnings("ignore::UserWarning"), pytest.mark.usefixtures("one_thread")]
@@ -108,8 +108,6 @@ def test_kill_during_diffuser_training_then_resume_end_to_end(tmp_path):
     assert redone["flow"]["true_return_mean_before"] == pytest.approx(metrics["flow"]["true_return_mean_before"])
     assert "true_return_filled_mean_before" in redone["flow"] and "true_return_filled_mean_before" not in metrics["flow"]
     assert metrics["analysis"]["improvement"]["true_return_mean_after"] == metrics["flow"]["true_return_mean_after"]
-    if "novelty" in metrics["analysis"]:  # samples were accepted: their validity beside the data's, toy oracle
-        assert metrics["analysis"]["validity"]["dynamics_error_dataset"] < 1e-5
     assert redone["analysis"]["improvement"]["true_return_filled_mean_after"] == redone["flow"]["true_return_filled_mean_after"]
     assert (run_dir / "plots" / "true_return_filled_before_after.png").is_file()
     gen = load_script(ROOT / "bench" / "flow_generated.py", "bench_flow_generated")
@@ -138,6 +136,14 @@ def test_kill_during_diffuser_training_then_resume_end_to_end(tmp_path):
         recipe.run(_cfg(run_dir, "resume=true", "redo_from=bc", "flow.threshold=1.01"))
     with pytest.raises(ValueError, match="not a stage"):
         recipe.run(_cfg(run_dir, "resume=true", "redo_from=sampling"))
+
+    # accepted samples on an env with a one-step oracle (toy): their dynamics error beside the data's and an MLP
+    # model's on held-out real transitions, by step in plots/validity_per_step.png
+    accepting = recipe.run(_cfg(run_dir, "resume=true", "redo_from=flow", "flow.threshold=1.0", "flow.top_k=40"))
+    assert accepting["flow"]["fraction_generated_in_final"] > 0
+    v = accepting["analysis"]["validity"]
+    assert v["dynamics_error_dataset"] < 1e-5 < v["dynamics_error_mlp_heldout"] < v["dynamics_error_generated"]
+    assert (run_dir / "plots" / "validity_per_step.png").is_file()
 
     # the oracle filter (flow.filter=true_return): the top-k, the acceptance and the final ranking
     # by the true return (here the 32-step fill), an upper bound labelled as such, not PbRL
@@ -410,14 +416,23 @@ def test_oracle_validity_on_envs_with_one_step_dynamics(report_rows):
     data = make_toy_dataset(num_trajectories=8, horizon=16, seed=0)
     samples = data[:4].select("observation", "action", "mask").clone()
     samples["action"] = -samples["action"]  # the observations no longer follow from the actions
-    v = recipe.oracle_validity(samples, data, dynamics_oracle("toy", toy_horizon=16))
+    v, curve = recipe.oracle_validity(samples, data, dynamics_oracle("toy", toy_horizon=16), reference_steps=300)
     assert v["dynamics_error_dataset"] < 1e-5 < 1e-2 < v["dynamics_error_generated"]
-    empty = recipe.oracle_validity(samples[:0], data, dynamics_oracle("toy", toy_horizon=16))
-    assert empty["dynamics_error_generated"] != empty["dynamics_error_generated"]  # NaN, not a failed run
+    # the paper's reference scale: a learned one-step model errs on held-out real transitions, far less than samples
+    # whose actions do not explain their observations
+    assert 0 < v["dynamics_error_mlp_heldout"] < v["dynamics_error_generated"] / 5
+    assert curve.shape == (16,) and curve[-1] != curve[-1] and float(curve[:-1].min()) > 1e-2  # last step: no successor
+    empty, none = recipe.oracle_validity(samples[:0], data, dynamics_oracle("toy", toy_horizon=16))
+    assert empty["dynamics_error_generated"] != empty["dynamics_error_generated"] and none is None  # NaN, no failure
+    assert "dynamics_error_mlp_heldout" not in empty  # reference_steps=0: no model
     rows = report_rows(recipe, analysis={"validity": v}, env="toy")
     row = rows["accepted samples: one-step dynamics error per observation dim (dataset)"]
     assert row == f"{v['dynamics_error_generated']:.4g} ({v['dynamics_error_dataset']:.4g})"
+    assert rows["the same of an MLP one-step model on held-out real transitions (the paper's reference)"] == \
+        f"{v['dynamics_error_mlp_heldout']:.4g}"
     assert not any(k.startswith("accepted samples: frame-stack") for k in rows)
+    with pytest.raises(ValueError, match="validity_reference_steps=-1"):
+        recipe.validity_reference_steps(OmegaConf.create({"analysis": {"validity_reference_steps": -1}}))
     assert dynamics_oracle("button-press-v3") is None
     with pytest.raises(ValueError, match="toy_horizon"):
         dynamics_oracle("toy")

@@ -1,6 +1,14 @@
 """Analysis stage (paper §4.3): improvement, validity (dynamics error), novelty, open-loop and tracked replays, plots."""
-from torchrl_ftb.analysis.metrics import dynamics_error, improvement, novelty, toy_oracle_step, trajectory_distances
-from torchrl_ftb.analysis.plots import plot_flow_curves, plot_histograms, plot_scatter, save_figure
+from torchrl_ftb.analysis.metrics import (
+    dynamics_error,
+    fit_dynamics_reference,
+    improvement,
+    novelty,
+    per_step_mean,
+    toy_oracle_step,
+    trajectory_distances,
+)
+from torchrl_ftb.analysis.plots import plot_curves, plot_flow_curves, plot_histograms, plot_scatter, save_figure
 from torchrl_ftb.analysis.replay import (
     ended_early,
     episode_jobs,
@@ -19,6 +27,7 @@ __all__ = [
     "dynamics_error",
     "ended_early",
     "episode_jobs",
+    "fit_dynamics_reference",
     "improvement",
     "locomotion_open_loop_improvement",
     "locomotion_replays",
@@ -28,6 +37,8 @@ __all__ = [
     "nearest_start",
     "novelty",
     "open_loop_improvement",
+    "per_step_mean",
+    "plot_curves",
     "plot_flow_curves",
     "plot_histograms",
     "plot_scatter",

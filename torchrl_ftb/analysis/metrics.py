@@ -4,6 +4,8 @@
 * :func:`dynamics_error` — validity: per-step error of generated transitions against an
   oracle ``(s_h, a_h) -> s_{h+1}`` (the env helpers: ``torchrl_ftb.envs.oracle_step`` for
   locomotion; :func:`toy_oracle_step` for the toy task).
+* :func:`fit_dynamics_reference` — the paper's reference scale for that error (Fig. 4 right, dashed line):
+  an MLP one-step model fitted on part of the dataset, scored the same way on the rest.
 * :func:`novelty` — min L2 distance of each generated trajectory to the dataset, beside the
   same distance for Gaussian-perturbed dataset trajectories (N(0, 0.1), the paper's baseline).
 
@@ -27,7 +29,8 @@ from tensordict import TensorDictBase
 
 from torchrl_ftb.flow.flow import masked_true_return, return_summary
 
-__all__ = ["improvement", "dynamics_error", "toy_oracle_step", "novelty", "trajectory_distances"]
+__all__ = ["improvement", "dynamics_error", "fit_dynamics_reference", "per_step_mean", "toy_oracle_step", "novelty",
+           "trajectory_distances"]
 
 
 def improvement(
@@ -67,6 +70,16 @@ def toy_oracle_step(observation: torch.Tensor, action: torch.Tensor, *, horizon:
     return nxt
 
 
+def _successors(trajectories: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(s_{h+1} [N, H, obs], valid [N, H])``: ``("next", "observation")`` where the batch has it (every valid
+    step is a transition), else the next observation of the trajectory itself, the last valid step excluded."""
+    obs, mask = trajectories.get("observation"), trajectories.get("mask").bool()
+    if ("next", "observation") in trajectories.keys(True):
+        return trajectories.get(("next", "observation")), mask
+    return (torch.cat([obs[:, 1:], obs[:, -1:]], 1),
+            mask & torch.cat([mask[:, 1:], torch.zeros_like(mask[:, :1])], 1))
+
+
 def dynamics_error(
     trajectories: TensorDictBase,
     oracle_step: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
@@ -86,13 +99,9 @@ def dynamics_error(
         ``{"per_step": [N, H] (0 where no target), "valid": [N, H] bool, "per_trajectory": [N],
         "mean": float}``.
     """
-    obs, act, mask = trajectories.get("observation"), trajectories.get("action"), trajectories.get("mask").bool()
-    if ("next", "observation") in trajectories.keys(True):
-        target, valid = trajectories.get(("next", "observation")), mask
-    else:
-        target = torch.cat([obs[:, 1:], obs[:, -1:]], 1)
-        valid = mask & torch.cat([mask[:, 1:], torch.zeros_like(mask[:, :1])], 1)
-    err = torch.zeros(mask.shape, dtype=torch.float32, device=obs.device)
+    obs, act = trajectories.get("observation"), trajectories.get("action")
+    target, valid = _successors(trajectories)
+    err = torch.zeros(valid.shape, dtype=torch.float32, device=obs.device)
     if bool(valid.any()):
         pred = torch.as_tensor(oracle_step(obs[valid], act[valid])).to(obs.device).float()
         err[valid] = (pred - target[valid].float()).abs().mean(-1)
@@ -100,6 +109,94 @@ def dynamics_error(
     per_traj = err.sum(-1) / counts
     return {"per_step": err, "valid": valid, "per_trajectory": per_traj,
             "mean": float(err[valid].mean()) if bool(valid.any()) else float("nan")}
+
+
+def per_step_mean(values: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """``[H]`` mean of ``values [N, H]`` over the trajectories valid at each step (NaN where none is), e.g. the
+    generated transitions' error by step within the trajectory (paper Fig. 4 right) from :func:`dynamics_error`.
+
+    Example:
+        >>> per_step_mean(torch.tensor([[1.0, 2.0], [3.0, 0.0]]), torch.tensor([[True, True], [True, False]]))
+        tensor([2., 2.])
+    """
+    valid = valid.bool()
+    counts = valid.sum(0)
+    total = torch.where(valid, values, torch.zeros_like(values)).sum(0)
+    return torch.where(counts > 0, total / counts.clamp_min(1), torch.full_like(total, float("nan")))
+
+
+def _transitions(trajectories: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(s, a, s')`` of every step with a successor (:func:`_successors`), flat, on the CPU."""
+    target, valid = _successors(trajectories)
+    obs, act = trajectories.get("observation"), trajectories.get("action")
+    return obs[valid].float().cpu(), act[valid].float().cpu(), target[valid].float().cpu()
+
+
+def fit_dynamics_reference(data: TensorDictBase, *, steps: int = 2000, batch_size: int = 256, hidden: int = 256,
+                           lr: float = 1e-3, holdout: float = 0.2, seed: int = 0) -> dict[str, float]:
+    """The paper's reference scale for :func:`dynamics_error` (§4.3, Fig. 4 right, dashed line): a learned
+    one-step model's error on real transitions it was not fitted on.
+
+    An MLP (torchrl's ``MLP``, two hidden layers of ``hidden`` ReLU units) maps the normalised ``(s, a)`` to the
+    normalised change ``s' - s``; it is fitted on the transitions of a ``1 - holdout`` share of the trajectories and
+    scored, as :func:`dynamics_error` scores an oracle's prediction (mean absolute error per observation dimension),
+    on the transitions of the others. A hand-written regression loop: a supervised fit used only by this analysis,
+    which no torchrl loss covers. Seeded: the same data and seed give the same number.
+
+    Args:
+        data: ``[N, H]`` real trajectories (``observation``, ``action``, ``mask``; ``("next", "observation")`` if
+            present), at least two.
+        steps, batch_size, hidden, lr: Adam steps on the mean squared error, its batch, the width, the step size.
+        holdout: share of the trajectories held out (at least one).
+        seed: the split, the initialisation and the batches.
+
+    Returns:
+        ``{"heldout_error": float, "train_error": float, "train_transitions": int, "heldout_transitions": int}``.
+
+    Raises:
+        ValueError: fewer than two trajectories, no transition on either side, or ``steps < 1``.
+
+    Example:
+        >>> from torchrl_ftb.testing import make_toy_dataset
+        >>> ref = fit_dynamics_reference(make_toy_dataset(num_trajectories=8, horizon=8, seed=0), steps=20)
+        >>> ref["heldout_transitions"] > 0 and ref["heldout_error"] > 0
+        True
+    """
+    from torchrl.modules import MLP  # here: the package's import stays light
+
+    n = data.batch_size[0]
+    if n < 2 or steps < 1 or not 0.0 < holdout < 1.0:
+        raise ValueError(f"fit_dynamics_reference: need >= 2 trajectories, steps >= 1 and holdout in (0, 1), got "
+                         f"{n}, {steps}, {holdout}")
+    gen = torch.Generator().manual_seed(seed)
+    order = torch.randperm(n, generator=gen)
+    n_out = min(n - 1, max(1, round(holdout * n)))
+    (s, a, s1), (s_out, a_out, s1_out) = (_transitions(data[order[n_out:]]), _transitions(data[order[:n_out]]))
+    if not len(s) or not len(s_out):
+        raise ValueError("fit_dynamics_reference: the data have no transition (two consecutive valid steps) on one "
+                         "side of the split")
+    x = torch.cat([s, a], -1)
+    x_loc, x_scale = x.mean(0), x.std(0).clamp_min(1e-6)
+    d_loc, d_scale = (s1 - s).mean(0), (s1 - s).std(0).clamp_min(1e-6)
+    with torch.random.fork_rng():
+        torch.manual_seed(seed)
+        net = MLP(in_features=x.shape[-1], out_features=s.shape[-1], num_cells=[hidden, hidden], activation_class=torch.nn.ReLU)
+    opt = torch.optim.Adam(net.parameters(), lr=lr)
+    xn, yn = (x - x_loc) / x_scale, ((s1 - s) - d_loc) / d_scale
+    for _ in range(steps):
+        idx = torch.randint(0, len(xn), (min(batch_size, len(xn)),), generator=gen)
+        loss = (net(xn[idx]) - yn[idx]).pow(2).mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+
+    def error(s_, a_, s1_) -> float:
+        with torch.no_grad():
+            pred = s_ + net((torch.cat([s_, a_], -1) - x_loc) / x_scale) * d_scale + d_loc
+        return float((pred - s1_).abs().mean())
+
+    return {"heldout_error": error(s_out, a_out, s1_out), "train_error": error(s, a, s1),
+            "train_transitions": len(s), "heldout_transitions": len(s_out)}
 
 
 def _flat_features(trajs: TensorDictBase) -> torch.Tensor:

@@ -23,7 +23,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import torch  # noqa: E402
 
-__all__ = ["plot_flow_curves", "plot_histograms", "plot_scatter", "save_figure"]
+__all__ = ["plot_curves", "plot_flow_curves", "plot_histograms", "plot_scatter", "save_figure"]
 
 
 def save_figure(fig, path: str | os.PathLike) -> Path:
@@ -76,6 +76,39 @@ def plot_flow_curves(
         if key != "accept_rate":
             ax.legend()
     fig.suptitle(title)
+    return save_figure(fig, path)
+
+
+def plot_curves(
+    curves: Mapping[str, torch.Tensor | Sequence[float]],
+    path: str | os.PathLike,
+    *,
+    xlabel: str,
+    ylabel: str,
+    levels: Mapping[str, float] | None = None,
+    title: str = "",
+    log_y: bool = False,
+) -> Path:
+    """Named curves over their index (NaN points left out), with named horizontal ``levels`` dashed, e.g. the
+    generated transitions' dynamics error by step beside a learned model's error (paper Fig. 4 right).
+
+    Example:
+        >>> plot_curves({"a": [1.0, 2.0]}, "/tmp/curves.png", xlabel="h", ylabel="e", levels={"ref": 1.5})  # doctest: +SKIP
+    """
+    fig, ax = plt.subplots(figsize=(5.6, 3.4))
+    for name, values in curves.items():
+        v = torch.as_tensor(values, dtype=torch.float64).flatten()
+        keep = torch.isfinite(v)
+        ax.plot(torch.arange(len(v))[keep].tolist(), v[keep].tolist(), label=name)
+    for i, (name, value) in enumerate((levels or {}).items()):
+        ax.axhline(float(value), linestyle="--", color=f"C{len(curves) + i}", label=f"{name} ({float(value):.3g})")
+    if log_y:
+        ax.set_yscale("log")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
     return save_figure(fig, path)
 
 
