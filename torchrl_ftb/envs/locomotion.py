@@ -22,6 +22,7 @@ Example:
 from __future__ import annotations
 
 import functools
+import zlib
 
 import numpy as np
 import torch
@@ -110,10 +111,31 @@ def _sim(env_id: str):
 
 
 def _set_from_obs(u, obs: np.ndarray) -> None:
+    """The simulator at the state of ``obs`` (x = 0) with a fresh ``mjData``, as a reset leaves it: without
+    ``mj_resetData`` the contact solver's warm start of whatever ran before would carry over, and on
+    HalfCheetah's many contacts change the outcome, so a reading would depend on the order of the calls."""
+    import mujoco
+
     nq = u.model.nq
     qpos = np.concatenate([[0.0], obs[: nq - 1]])
     qvel = obs[nq - 1 :]
+    mujoco.mj_resetData(u.model, u.data)
     u.set_state(qpos, qvel)
+
+
+def _save_state(u) -> np.ndarray:
+    """The simulator's whole integration state (positions, velocities and the solver's warm start)."""
+    import mujoco
+
+    out = np.empty(mujoco.mj_stateSize(u.model, mujoco.mjtState.mjSTATE_INTEGRATION))
+    mujoco.mj_getState(u.model, u.data, out, mujoco.mjtState.mjSTATE_INTEGRATION)
+    return out
+
+
+def _restore_state(u, state: np.ndarray) -> None:
+    import mujoco
+
+    mujoco.mj_setState(u.model, u.data, state, mujoco.mjtState.mjSTATE_INTEGRATION)
 
 
 def _flat(x, name: str, dim: int | None = None) -> tuple[np.ndarray, tuple]:
@@ -264,7 +286,9 @@ def track_locomotion_paths(env_name: str, paths: torch.Tensor, actions: torch.Te
         uniform: share of the other candidates drawn uniformly from the action box (any action, not only ones
             near the path's own).
         lookahead: steps each candidate is scored over (>= 1; 1: greedy one-step tracking).
-        seed: seeds the perturbations.
+        seed: seeds the perturbations, per path together with the path's own numbers (a CRC of its valid
+            observations and actions), so a path's reading depends on the path alone, not on the paths tracked
+            with it or before it: a trajectory in both the top-k and the final set reads the same in both.
 
     Returns:
         One dict per path: ``"reward"`` ``[n_i]``, ``"observation"`` ``[n_i + 1, obs_dim]``, ``"terminated"``
@@ -290,14 +314,13 @@ def track_locomotion_paths(env_name: str, paths: torch.Tensor, actions: torch.Te
                          f"{len(lengths)} lengths do not match ([N, H, obs], [N, H, act], N)")
     _check_dims(u, paths_np[:, 0], acts[:, 0], env_id)
     inv_scale = 1.0 / (np.ones(paths_np.shape[-1]) if scale is None else np.asarray(scale, np.float64))
-    rng = np.random.default_rng(seed)
 
-    def shoot(path: np.ndarray, act: np.ndarray, n: int):
+    def shoot(path: np.ndarray, act: np.ndarray, n: int, rng: np.random.Generator):
         def choose(t: int) -> np.ndarray:
             action = np.clip(act[t], -1.0, 1.0)
             if t + 1 >= n or candidates == 1:
                 return action
-            qpos, qvel = u.data.qpos.copy(), u.data.qvel.copy()
+            saved = _save_state(u)  # each candidate starts from the same state, warm start included
             tries = np.concatenate([
                 action[None], rng.uniform(-1.0, 1.0, (num_uniform, action.shape[-1])),
                 np.clip(action + noise * rng.standard_normal((candidates - 1 - num_uniform, action.shape[-1])),
@@ -305,18 +328,19 @@ def track_locomotion_paths(env_name: str, paths: torch.Tensor, actions: torch.Te
             offsets = tries - action
             dist = np.zeros(candidates)
             for j, a in enumerate(tries):
-                u.set_state(qpos, qvel)
+                _restore_state(u, saved)
                 for k in range(min(lookahead, n - 1 - t)):
                     u.do_simulation(a if k == 0 else np.clip(act[t + k] + offsets[j], -1.0, 1.0), u.frame_skip)
                     dist[j] += np.linalg.norm((u._get_obs() - path[t + 1 + k]) * inv_scale)
-            u.set_state(qpos, qvel)
+            _restore_state(u, saved)
             return tries[int(dist.argmin())]
 
         return choose
 
     out = []
     for path, act, n in zip(paths_np, acts, lengths):
-        ep = _run_episode(u, path[0], int(n), shoot(path, act, int(n)))
+        rng = np.random.default_rng((seed, zlib.crc32(path[:n].tobytes() + act[:n].tobytes())))
+        ep = _run_episode(u, path[0], int(n), shoot(path, act, int(n), rng))
         reached = min(len(ep["observation"]), int(n))  # the steps that have a path observation to compare with
         ep["path_error"] = np.linalg.norm((ep["observation"][1:reached] - path[1:reached]) * inv_scale, axis=-1)
         out.append(ep)
