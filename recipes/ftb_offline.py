@@ -683,8 +683,8 @@ def tracked_analysis(cfg: DictConfig, run: RunDir, flow: dict, trajs: TensorDict
 
     Meta-World: tracks, with the run's inverse-dynamics tracker (:func:`path_tracker`), the original top-k and
     the final set's generated trajectories in the simulator (:func:`torchrl_ftb.analysis.tracked_improvement`).
-    Locomotion: a one-step shooting tracker with the simulator as its model follows every path of both sets from
-    its own first state (:func:`torchrl_ftb.analysis.locomotion_tracked_improvement`). Writes the per-sample
+    Locomotion: a shooting tracker with the simulator as its model (``tracker.lookahead``) follows every path of
+    both sets from its own first state (:func:`torchrl_ftb.analysis.locomotion_tracked_improvement`). Writes the per-sample
     numbers to ``tracked.json`` and returns the summary.
     """
     analysis = cfg.get("analysis", {})
