@@ -470,20 +470,19 @@ def oracle_validity(generated: TensorDictBase, data: TensorDictBase,
     ``reference_steps > 0``, beside the paper's reference scale: an MLP one-step model fitted on the dataset, scored
     on held-out trajectories (:func:`torchrl_ftb.analysis.fit_dynamics_reference`). Returns the summary and the
     samples' error by step within the trajectory (``[H]``, None without samples; Fig. 4 right)."""
-    out, curve = {}, None
-    for name, td in (("generated", generated), ("dataset", data)):
-        err = dynamics_error(td, oracle) if td.batch_size[0] else None
-        out[f"dynamics_error_{name}"] = err["mean"] if err is not None else float("nan")
-        if name == "generated" and err is not None:
-            curve = per_step_mean(err["per_step"], err["valid"])
+    err = dynamics_error(generated, oracle) if generated.batch_size[0] else None
+    out = {"dynamics_error_generated": err["mean"] if err is not None else float("nan"),
+           "dynamics_error_dataset": dynamics_error(data, oracle)["mean"]}
+    curve = per_step_mean(err["per_step"], err["valid"]) if err is not None else None
     if reference_steps > 0:
         out["dynamics_error_mlp_heldout"] = fit_dynamics_reference(data, steps=reference_steps, seed=seed)["heldout_error"]
     return out, curve
 
 
 def validity_reference_steps(cfg: DictConfig) -> int:
-    """``analysis.validity_reference_steps``: Adam steps of the MLP dynamics model of :func:`oracle_validity` (0: none)."""
-    steps = int(cfg.get("analysis", {}).get("validity_reference_steps", 0))
+    """``analysis.validity_reference_steps``: Adam steps of the MLP dynamics model of :func:`oracle_validity` (0: none;
+    default 2000, as in the config)."""
+    steps = int(cfg.get("analysis", {}).get("validity_reference_steps", 2000))
     if steps < 0:
         raise ValueError(f"analysis.validity_reference_steps={steps}: must be >= 0 (0: no reference model)")
     return steps
