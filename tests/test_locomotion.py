@@ -385,3 +385,18 @@ def test_simulator_readings_depend_on_the_path_alone():
         return float(replay[-1]["reward"].sum()), float(track[-1]["reward"].sum())
 
     assert readings([b]) == readings([a, b])
+
+
+def test_fidelity_bench_rereads_hopper_data_exactly(tmp_path):
+    """bench/locomotion_fidelity.py: Hopper's recorded trajectories replay to their recorded returns from their first
+    observation, from the stored state, and after another trajectory (Hopper's readings are exact)."""
+    from pathlib import Path
+
+    from torchrl_ftb.testing import load_script
+
+    bench = load_script(Path(__file__).resolve().parents[1] / "bench" / "locomotion_fidelity.py", "bench_fidelity")
+    rows = bench.fidelity("hopper-medium-replay", 2, cache_dir=tmp_path)
+    assert len(rows) == 2
+    for r in rows:
+        for key in ("from_observation", "from_stored_state", "from_observation_after_another"):
+            assert r[key] == pytest.approx(r["recorded"], abs=1e-2), key
