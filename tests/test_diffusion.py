@@ -351,6 +351,25 @@ def test_resume_continues_exactly(data, tmp_path):
     assert torch.equal(loaded.state_dict()["ema.n_averaged"], sb["ema.n_averaged"])
 
 
+def test_resume_continues_the_pair_buffers_own_stream(data, tmp_path):
+    """The recipe's pair buffer samples from its own seeded generator, not torch's global RNG: a resumed run
+    (a fresh buffer with the same seed, as after a kill) must go on with the pairs an uninterrupted run draws."""
+    from torchrl_ftb.preference import make_block_pair_buffer
+
+    def buffer():
+        return make_block_pair_buffer(data, torch.arange(32) // 8, batch_size=4, seed=5)
+
+    a = _diffuser(data)
+    train_diffuser(a, buffer(), steps=6, lr=1e-3, progress=False, seed=3)
+    b = _diffuser(data)
+    train_diffuser(b, buffer(), steps=3, lr=1e-3, progress=False, seed=3, checkpoint_dir=tmp_path)
+    b2 = _diffuser(data)
+    out = train_diffuser(b2, buffer(), steps=6, lr=1e-3, progress=False, seed=3, checkpoint_dir=tmp_path, resume=True)
+    assert out["resumed_from"] == 3
+    sa, sb = a.state_dict(), b2.state_dict()
+    assert all(torch.allclose(sa[k].float(), sb[k].float(), atol=1e-6) for k in sa)
+
+
 def test_trains_on_preference_block_pair_buffer(data):
     """The loss consumes the preference stage's replay buffer batches as they are."""
     from torchrl_ftb.preference import make_block_pair_buffer

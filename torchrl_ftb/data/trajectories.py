@@ -47,6 +47,8 @@ __all__ = [
     "atomic_torch_save",
     "read_checkpoint",
     "atomic_write_text",
+    "sampler_rng_state",
+    "restore_sampler_rng",
 ]
 
 FORMAT_VERSION = 1
@@ -354,6 +356,21 @@ def atomic_torch_save(obj: Any, path: str | os.PathLike) -> None:
     """``torch.save`` to a temp file then ``os.replace``: a crash never leaves a half file."""
     with atomic_file(path) as tmp:
         torch.save(obj, tmp)
+
+
+def sampler_rng_state(buffer: Any) -> torch.Tensor | None:
+    """The state of a replay buffer's own sampling generator (torchrl's ``ReplayBuffer(generator=)``), for a
+    checkpoint, so a resumed run draws the batches an uninterrupted one would; ``None`` for a buffer without one
+    (a plain callable, or a buffer that samples from torch's global RNG)."""
+    rng = getattr(buffer, "_rng", None)  # torchrl keeps the generator here; it offers set_rng, no getter
+    return rng.get_state() if isinstance(rng, torch.Generator) else None
+
+
+def restore_sampler_rng(buffer: Any, state: torch.Tensor | None) -> None:
+    """Put back a state from :func:`sampler_rng_state` (no-op for ``None`` or a buffer without a generator)."""
+    rng = getattr(buffer, "_rng", None)
+    if state is not None and isinstance(rng, torch.Generator):
+        rng.set_state(state.cpu())
 
 
 def read_checkpoint(path: str | os.PathLike, *, what: str = "", map_location: Any = "cpu") -> Any:

@@ -30,7 +30,7 @@ import torch
 from tensordict import TensorDictBase
 from tqdm.auto import tqdm
 
-from torchrl_ftb.data.trajectories import atomic_torch_save, read_checkpoint
+from torchrl_ftb.data.trajectories import atomic_torch_save, read_checkpoint, restore_sampler_rng, sampler_rng_state
 from torchrl_ftb.diffusion.loss import DiffusionLoss
 from torchrl_ftb.diffusion.model import TrajectoryDiffuser
 
@@ -149,7 +149,8 @@ def train_diffuser(
         log_every: logging period in steps.
         checkpoint_dir: where ``diffuser_last.pt`` is written (``None``: no checkpoints).
         checkpoint_every: checkpoint period in steps (a final one is always written).
-        resume: continue from ``checkpoint_dir/diffuser_last.pt`` if it exists.
+        resume: continue from ``checkpoint_dir/diffuser_last.pt`` if it exists (weights, optimiser, torch's RNG
+            and the replay buffer's own generator: the run goes on as an uninterrupted one would).
         progress: tqdm progress bar.
         device: training device (default: where the diffuser is).
         compile: ``torch.compile`` the backbone.
@@ -182,6 +183,7 @@ def train_diffuser(
         optimizer.load_state_dict(ckpt["optimizer"])
         start = int(ckpt["step"])
         torch.set_rng_state(ckpt["rng_torch"].cpu())
+        restore_sampler_rng(replay_buffer, ckpt.get("rng_sampler"))  # checkpoints before session 36 lack it
         if torch.cuda.is_available() and ckpt.get("rng_cuda"):
             torch.cuda.set_rng_state_all([s.cpu() for s in ckpt["rng_cuda"]])
     else:
@@ -198,6 +200,8 @@ def train_diffuser(
             "rng_torch": torch.get_rng_state(),
             "rng_cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else [],
         }
+        if (rng := sampler_rng_state(replay_buffer)) is not None:  # the pair buffer's own generator
+            extra["rng_sampler"] = rng
         save_diffuser(diffuser, ckpt_path, extra=extra)
 
     losses: list[float] = []

@@ -30,7 +30,7 @@ from torchrl.data.replay_buffers import RandomSampler
 from torchrl.objectives import BCLoss
 from tqdm.auto import tqdm
 
-from torchrl_ftb.data import atomic_torch_save
+from torchrl_ftb.data import atomic_torch_save, restore_sampler_rng, sampler_rng_state
 
 __all__ = ["make_transition_buffer", "train_bc", "load_bc_checkpoint"]
 
@@ -190,15 +190,14 @@ def train_bc(
         except (ValueError, KeyError) as err:
             raise ValueError(f"{checkpoint_path}: optimizer state does not match ({err})") from err
         start_step = int(ckpt["step"])
-        if "sampler_rng" in ckpt and hasattr(buffer, "_rng") and buffer._rng is not None:
-            buffer._rng.set_state(ckpt["sampler_rng"])
+        restore_sampler_rng(buffer, ckpt.get("sampler_rng"))
 
     def save(step: int) -> None:
         if checkpoint_path is None:
             return
         state = {"kind": _CKPT_KIND, "step": step, "actor": actor.state_dict(), "optimizer": optimizer.state_dict()}
-        if getattr(buffer, "_rng", None) is not None:
-            state["sampler_rng"] = buffer._rng.get_state()
+        if (rng := sampler_rng_state(buffer)) is not None:
+            state["sampler_rng"] = rng
         atomic_torch_save(state, checkpoint_path)
 
     evaluations: list[dict[str, float]] = []
