@@ -11,7 +11,9 @@ Stages (each ends with a checkpoint in ``run_dir/checkpoints`` and an entry in
 ``s_psi`` → blocks → trajectory diffuser (periodic checkpoints) → flow to better → BC
 (periodic checkpoints) → evaluation. With ``resume=true`` finished stages are loaded,
 unfinished training continues from its last checkpoint; a different config, a corrupt or
-mismatched checkpoint raise a clear error and nothing is overwritten. ``stop_after=<stage>``
+mismatched checkpoint raise a clear error and nothing is overwritten. ``resume=true`` with a larger
+``diffuser.steps`` trains the run's diffuser on from its last checkpoint and redoes the flow and later
+stages (on locomotion 4x the ``cpu`` preset's steps pays: BENCHMARKS.md, session 35). ``stop_after=<stage>``
 stops once that stage is done (``metrics_partial.json``; e.g. ``stop_after=blocks`` for
 preference augmentation alone); a later ``resume=true`` run continues from there.
 
@@ -216,6 +218,8 @@ class RunDir:
             # the config sections of redone stages may change (that is what redo_from is for)
             free = set(RESUME_FREE_KEYS) | (set(STAGES[STAGES.index(redo):]) if redo is not None else set())
             owned = [key for stage in free for key in STAGE_OWNED_KEYS.get(stage, ())]
+            if "diffuser" not in free and self._extend_diffuser(cfg, old):
+                owned.append(("diffuser", "steps"))
             old = _drop_keys({k: v for k, v in old.items() if k not in free}, owned)
             new_cfg = _drop_keys({k: v for k, v in _comparable(cfg).items() if k not in free}, owned)
             diff = _diff_keys(new_cfg, old)
@@ -224,6 +228,37 @@ class RunDir:
         self.path.mkdir(parents=True, exist_ok=True)
         self.ckpt.mkdir(parents=True, exist_ok=True)
         atomic_write_text(self.config_file, OmegaConf.to_yaml(cfg, resolve=True))
+
+    def _extend_diffuser(self, cfg: DictConfig, old: dict) -> bool:
+        """``resume=true`` with a larger ``diffuser.steps`` than the run's: the diffuser trains on from its last
+        checkpoint up to the new total (as an uninterrupted run of that length would), and the flow and every
+        later stage are redone; the dataset, labels, score model and blocks are kept. A smaller number than the
+        diffuser has trained raises (a trained diffuser cannot be shortened; ``redo_from=diffuser`` retrains)."""
+        try:
+            before = int(diffuser_settings(OmegaConf.create(old))["steps"])
+        except Exception:  # noqa: BLE001 - a saved config the comparison below reports anyway
+            return False
+        steps = int(diffuser_settings(cfg)["steps"])
+        if steps == before:
+            return False
+        path = self.ckpt / "diffuser" / CHECKPOINT_NAME
+        if self.done("diffuser"):
+            trained = int(self.stages["diffuser"]["steps"])
+        else:  # killed during training (or not started): the last checkpoint's step
+            trained = int(read_checkpoint(path, what="diffuser")["step"]) if path.is_file() else 0
+        if steps < trained:
+            raise ValueError(f"diffuser.steps={steps}: the diffuser of {self.path} has trained {trained} steps and "
+                             f"cannot be shortened; pass redo_from=diffuser to train a new one")
+        for name in STAGES[STAGES.index("diffuser"):]:
+            self.stages.pop(name, None)
+            for item in STAGE_CHECKPOINTS.get(name, ()) if name != "diffuser" else ():
+                target = self.ckpt / item
+                shutil.rmtree(target) if target.is_dir() else target.unlink(missing_ok=True)
+        if self.stages_file.exists():
+            write_json(self.stages_file, self.stages)
+        print(f"diffuser.steps {before} -> {steps}: training on from step {trained}; "
+              "the flow and later stages are redone", flush=True)
+        return True
 
     def done(self, stage: str) -> bool:
         return bool(self.stages.get(stage, {}).get("done"))

@@ -131,7 +131,7 @@ def test_kill_during_diffuser_training_then_resume_end_to_end(tmp_path):
             assert imp[ours][f"true_return_{stat}"] == pytest.approx(redone["flow"][f"{recipe_key}_{stat}"], abs=1e-4)
     assert json.loads((run_dir / "stages.json").read_text())["eval"]["done"]
     with pytest.raises(ValueError, match="different config"):  # earlier stages' settings still locked
-        recipe.run(_cfg(run_dir, "resume=true", "redo_from=flow", "diffuser.steps=41"))
+        recipe.run(_cfg(run_dir, "resume=true", "redo_from=flow", "diffuser.batch_size=7"))
     with pytest.raises(ValueError, match="guidance"):  # ... and the flow's, unless the flow is redone
         recipe.run(_cfg(run_dir, "resume=true", "redo_from=bc", "flow.threshold=1.01"))
     with pytest.raises(ValueError, match="not a stage"):
@@ -315,6 +315,30 @@ def test_stop_after_a_stage_then_resume_to_the_end(tmp_path):
     assert (run_dir / "checkpoints" / "score_model.pt").stat().st_mtime_ns == score_mtime  # loaded, not retrained
     assert metrics["eval"]["num_episodes"] == 2 and metrics["score_quality"] == partial["score_quality"]
     assert (run_dir / "metrics.json").is_file() and not (run_dir / "metrics_partial.json").exists()
+
+
+def test_resume_with_more_diffuser_steps_trains_on_and_redoes_the_flow(tmp_path):
+    """A finished run resumed with a larger ``diffuser.steps`` trains its diffuser on from the last checkpoint to
+    the very weights a run of that length gets, and redoes the flow and later stages; the earlier stages are
+    kept. A smaller number is refused and leaves the run as it was."""
+    from torchrl_ftb.diffusion import load_diffuser
+
+    recipe = _recipe()
+    run_dir, fresh = tmp_path / "run", tmp_path / "fresh"
+    short = recipe.run(_cfg(run_dir, "diffuser.steps=20"))
+    score_mtime = (run_dir / "checkpoints" / "score_model.pt").stat().st_mtime_ns
+    longer = recipe.run(_cfg(run_dir, "resume=true", "diffuser.steps=40"))
+    assert longer["diffuser"]["resumed_from"] == 20 and longer["diffuser"]["steps"] == 40
+    assert (run_dir / "checkpoints" / "score_model.pt").stat().st_mtime_ns == score_mtime  # kept, not retrained
+    assert longer["score_quality"] == short["score_quality"] and "flow" in longer and longer["eval"]["num_episodes"] == 2
+    recipe.run(_cfg(fresh, "diffuser.steps=40", "stop_after=diffuser"))
+    ckpt = ("checkpoints", "diffuser", "diffuser_last.pt")
+    a, b = (load_diffuser(d.joinpath(*ckpt)).state_dict() for d in (run_dir, fresh))
+    assert a.keys() == b.keys() and all(torch.allclose(a[k].float(), b[k].float(), atol=1e-6) for k in a)
+    stages = (run_dir / "stages.json").read_text()
+    with pytest.raises(ValueError, match="trained 40 steps and cannot be shortened"):
+        recipe.run(_cfg(run_dir, "resume=true", "diffuser.steps=30"))
+    assert (run_dir / "stages.json").read_text() == stages
 
 
 def test_metaworld_config_is_the_paper_defaults_plus_the_fill_and_a_larger_top_k():
