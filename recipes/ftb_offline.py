@@ -234,11 +234,11 @@ class RunDir:
         checkpoint up to the new total (as an uninterrupted run of that length would), and the flow and every
         later stage are redone; the dataset, labels, score model and blocks are kept. A smaller number than the
         diffuser has trained raises (a trained diffuser cannot be shortened; ``redo_from=diffuser`` retrains)."""
-        try:
-            before = int(diffuser_settings(OmegaConf.create(old))["steps"])
-        except Exception:  # noqa: BLE001 - a saved config the comparison below reports anyway
+        saved = old.get("diffuser") or {}
+        if saved.get("preset") != cfg.diffuser.preset:  # another model: the config comparison reports it
             return False
-        steps = int(diffuser_settings(cfg)["steps"])
+        before = run_settings(str(saved["preset"]), steps=saved.get("steps"))["steps"]
+        steps = diffuser_settings(cfg)["steps"]
         if steps == before:
             return False
         path = self.ckpt / "diffuser" / CHECKPOINT_NAME
