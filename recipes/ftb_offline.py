@@ -206,41 +206,43 @@ class RunDir:
                 raise ValueError(f"redo_from={redo!r}: not a stage; choose one of {list(STAGES)}")
             if not self.resume:
                 raise ValueError("redo_from needs resume=true (it redoes the later stages of an existing run)")
-            for name in STAGES[STAGES.index(redo):]:
-                self.stages.pop(name, None)
-                for item in STAGE_CHECKPOINTS.get(name, ()):
-                    target = self.ckpt / item
-                    shutil.rmtree(target) if target.is_dir() else target.unlink(missing_ok=True)
-            if self.stages_file.exists():
-                write_json(self.stages_file, self.stages)
+        extension = None
         if self.resume and self.config_file.exists():
             old = OmegaConf.to_container(OmegaConf.load(self.config_file), resolve=True)
             # the config sections of redone stages may change (that is what redo_from is for)
             free = set(RESUME_FREE_KEYS) | (set(STAGES[STAGES.index(redo):]) if redo is not None else set())
             owned = [key for stage in free for key in STAGE_OWNED_KEYS.get(stage, ())]
-            if "diffuser" not in free and self._extend_diffuser(cfg, old):
+            extension = None if "diffuser" in free else self._diffuser_extension(cfg, old)
+            if extension is not None:
                 owned.append(("diffuser", "steps"))
             old = _drop_keys({k: v for k, v in old.items() if k not in free}, owned)
             new_cfg = _drop_keys({k: v for k, v in _comparable(cfg).items() if k not in free}, owned)
             diff = _diff_keys(new_cfg, old)
             if diff:
                 raise ValueError(f"{self.config_file}: resume=true with a different config: " + "; ".join(diff))
+        # only now, with the config accepted, is anything of the old run removed
+        if redo is not None:
+            self._forget(redo)
+        if extension is not None:
+            self._forget("diffuser", keep=("diffuser",))
+            print(extension, flush=True)
         self.path.mkdir(parents=True, exist_ok=True)
         self.ckpt.mkdir(parents=True, exist_ok=True)
         atomic_write_text(self.config_file, OmegaConf.to_yaml(cfg, resolve=True))
 
-    def _extend_diffuser(self, cfg: DictConfig, old: dict) -> bool:
-        """``resume=true`` with a larger ``diffuser.steps`` than the run's: the diffuser trains on from its last
-        checkpoint up to the new total (as an uninterrupted run of that length would), and the flow and every
-        later stage are redone; the dataset, labels, score model and blocks are kept. A smaller number than the
-        diffuser has trained raises (a trained diffuser cannot be shortened; ``redo_from=diffuser`` retrains)."""
+    def _diffuser_extension(self, cfg: DictConfig, old: dict) -> str | None:
+        """Whether ``resume=true`` asks for more diffuser training than the run's config did (a message saying so;
+        ``None``: it does not). Then the diffuser trains on from its last checkpoint up to the new total (as an
+        uninterrupted run of that length would), and the flow and every later stage are redone; the dataset,
+        labels, score model and blocks are kept. A number below what the diffuser has trained raises (a trained
+        diffuser cannot be shortened; ``redo_from=diffuser`` trains a new one)."""
         saved = old.get("diffuser") or {}
         if saved.get("preset") != cfg.diffuser.preset:  # another model: the config comparison reports it
-            return False
+            return None
         before = run_settings(str(saved["preset"]), steps=saved.get("steps"))["steps"]
         steps = diffuser_settings(cfg)["steps"]
         if steps == before:
-            return False
+            return None
         path = self.ckpt / "diffuser" / CHECKPOINT_NAME
         if self.done("diffuser"):
             trained = int(self.stages["diffuser"]["steps"])
@@ -249,16 +251,17 @@ class RunDir:
         if steps < trained:
             raise ValueError(f"diffuser.steps={steps}: the diffuser of {self.path} has trained {trained} steps and "
                              f"cannot be shortened; pass redo_from=diffuser to train a new one")
-        for name in STAGES[STAGES.index("diffuser"):]:
+        return f"diffuser.steps {before} -> {steps}: training on from step {trained}; the flow and later stages are redone"
+
+    def _forget(self, first: str, *, keep: tuple[str, ...] = ()) -> None:
+        """Mark stage ``first`` and every later one undone and remove their checkpoints (not those of ``keep``)."""
+        for name in STAGES[STAGES.index(first):]:
             self.stages.pop(name, None)
-            for item in STAGE_CHECKPOINTS.get(name, ()) if name != "diffuser" else ():
+            for item in () if name in keep else STAGE_CHECKPOINTS.get(name, ()):
                 target = self.ckpt / item
                 shutil.rmtree(target) if target.is_dir() else target.unlink(missing_ok=True)
         if self.stages_file.exists():
             write_json(self.stages_file, self.stages)
-        print(f"diffuser.steps {before} -> {steps}: training on from step {trained}; "
-              "the flow and later stages are redone", flush=True)
-        return True
 
     def done(self, stage: str) -> bool:
         return bool(self.stages.get(stage, {}).get("done"))

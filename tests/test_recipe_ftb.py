@@ -132,6 +132,8 @@ def test_kill_during_diffuser_training_then_resume_end_to_end(tmp_path):
     assert json.loads((run_dir / "stages.json").read_text())["eval"]["done"]
     with pytest.raises(ValueError, match="different config"):  # earlier stages' settings still locked
         recipe.run(_cfg(run_dir, "resume=true", "redo_from=flow", "diffuser.batch_size=7"))
+    assert json.loads((run_dir / "stages.json").read_text())["flow"]["done"]  # refused: nothing removed
+    assert (run_dir / "checkpoints" / "flow.pt").is_file()
     with pytest.raises(ValueError, match="guidance"):  # ... and the flow's, unless the flow is redone
         recipe.run(_cfg(run_dir, "resume=true", "redo_from=bc", "flow.threshold=1.01"))
     with pytest.raises(ValueError, match="not a stage"):
@@ -338,7 +340,9 @@ def test_resume_with_more_diffuser_steps_trains_on_and_redoes_the_flow(tmp_path)
     stages = (run_dir / "stages.json").read_text()
     with pytest.raises(ValueError, match="trained 40 steps and cannot be shortened"):
         recipe.run(_cfg(run_dir, "resume=true", "diffuser.steps=30"))
-    assert (run_dir / "stages.json").read_text() == stages
+    with pytest.raises(ValueError, match="different config: labels.num_pairs"):  # more steps, but another change
+        recipe.run(_cfg(run_dir, "resume=true", "diffuser.steps=50", "labels.num_pairs=31"))
+    assert (run_dir / "stages.json").read_text() == stages and (run_dir / "checkpoints" / "flow.pt").is_file()
 
 
 def test_metaworld_config_is_the_paper_defaults_plus_the_fill_and_a_larger_top_k():
