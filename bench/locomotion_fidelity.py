@@ -29,18 +29,13 @@ sys.path.insert(0, str(ROOT))
 
 from torchrl_ftb.datasets import make_dataset  # noqa: E402
 from torchrl_ftb.envs import locomotion_env_id, replay_locomotion_actions  # noqa: E402
-from torchrl_ftb.envs.locomotion import _sim  # noqa: E402
+from torchrl_ftb.envs.locomotion import _run_episode, _set_from_obs, _sim  # noqa: E402
 from torchrl_ftb.provenance import run_record, write_json  # noqa: E402
 
 
 def _rollout(u, actions: np.ndarray) -> float:
-    total = 0.0
-    for a in actions:
-        _, reward, terminated, _, _ = u.step(np.clip(a, -1.0, 1.0))
-        total += reward
-        if terminated:
-            break
-    return total
+    """Return of ``actions`` (clipped) run open loop from the simulator's current state: the library's loop."""
+    return float(_run_episode(u, None, len(actions), lambda t: np.clip(actions[t], -1.0, 1.0))["reward"].sum())
 
 
 def fidelity(dataset: str, num: int, *, cache_dir: str | Path | None = None) -> list[dict]:
@@ -69,8 +64,7 @@ def fidelity(dataset: str, num: int, *, cache_dir: str | Path | None = None) -> 
         other = order[(rank + 1) % len(order)]  # another trajectory first, then no reset: the old readings
         mujoco.mj_resetData(u.model, u.data)
         _rollout(u, data["action"][other, : int(data["mask"][other].sum())].double().numpy())
-        first = obs[0].double().numpy()
-        u.set_state(np.concatenate([[0.0], first[: nq - 1]]), first[nq - 1:])
+        _set_from_obs(u, obs[0].double().numpy(), fresh=False)
         row["from_observation_after_another"] = _rollout(u, act)
         rows.append(row)
     return rows

@@ -110,16 +110,18 @@ def _sim(env_id: str):
     return env.unwrapped
 
 
-def _set_from_obs(u, obs: np.ndarray) -> None:
+def _set_from_obs(u, obs: np.ndarray, *, fresh: bool = True) -> None:
     """The simulator at the state of ``obs`` (x = 0) with a fresh ``mjData``, as a reset leaves it: without
     ``mj_resetData`` the contact solver's warm start of whatever ran before would carry over, and on
-    HalfCheetah's many contacts change the outcome, so a reading would depend on the order of the calls."""
+    HalfCheetah's many contacts change the outcome, so a reading would depend on the order of the calls
+    (``fresh=False`` keeps it: only ``bench/locomotion_fidelity.py`` shows that effect)."""
     import mujoco
 
     nq = u.model.nq
     qpos = np.concatenate([[0.0], obs[: nq - 1]])
     qvel = obs[nq - 1 :]
-    mujoco.mj_resetData(u.model, u.data)
+    if fresh:
+        mujoco.mj_resetData(u.model, u.data)
     u.set_state(qpos, qvel)
 
 
@@ -243,11 +245,13 @@ def replay_locomotion_actions(env_name: str, first_observation: torch.Tensor,
     return out
 
 
-def _run_episode(u, first_observation: np.ndarray, steps: int, choose) -> dict[str, np.ndarray | bool]:
-    """One episode from the state rebuilt from ``first_observation``: ``u.step(choose(t))`` for ``t < steps``, until
-    the env terminates it (the one simulator loop of :func:`replay_locomotion_actions` and
-    :func:`track_locomotion_paths`; ``choose`` may read the simulator's current state)."""
-    _set_from_obs(u, first_observation)
+def _run_episode(u, first_observation: np.ndarray | None, steps: int, choose) -> dict[str, np.ndarray | bool]:
+    """One episode from the state rebuilt from ``first_observation`` (``None``: from the simulator's current state):
+    ``u.step(choose(t))`` for ``t < steps``, until the env terminates it (the one simulator loop of
+    :func:`replay_locomotion_actions`, :func:`track_locomotion_paths` and ``bench/locomotion_fidelity.py``; ``choose``
+    may read the simulator's current state)."""
+    if first_observation is not None:
+        _set_from_obs(u, first_observation)
     rewards, states, terminated = [], [u._get_obs()], False
     for t in range(steps):
         nxt, reward, terminated, _, _ = u.step(choose(t))
