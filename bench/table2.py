@@ -42,7 +42,7 @@ PAPER_TABLE2 = {
 def summary(results_dir: Path) -> str:
     """Markdown: per task and method, mean ± std (n) of each kind, and the supplement's returns."""
     rows = ["| task | method | none | SYNTHETIC | FTB | paper (D4RL v2): none / SYNTHETIC / FTB | supplement true return "
-            "(generated) → replayed open loop [dynamics error] per seed: SYNTHETIC ; FTB |", "|---|---|---|---|---|---|---|"]
+            "(generated) → replayed open loop → tracked closed loop [dynamics error] per seed: SYNTHETIC ; FTB |", "|---|---|---|---|---|---|---|"]
     cells = {kind: load_cells(results_dir / kind) for kind in KINDS}
     tasks = sorted({c["env"] for kind in KINDS for c in cells[kind]})
     for task in tasks:
@@ -58,10 +58,11 @@ def summary(results_dir: Path) -> str:
                 if kind != "none":
                     aug = [c["metrics"].get("augmentation", {}) for c in cells[kind]
                            if c["env"] == task and c["method"] == method]
-                    vals = [(a["true_return_mean"], a.get("generated_return_mean"), a.get("replayed_return_mean"),
-                             a.get("dynamics_error_mean")) for a in aug if a.get("true_return_mean") is not None]
-                    sup.append(" / ".join(f"{t:.0f} ({g:.0f})" + (f" → {r:.0f}" if r is not None else "")
-                                          + (f" [{e:.2f}]" if e is not None else "") for t, g, r, e in vals) or "—")
+                    vals = [(a["true_return_mean"], a.get("generated_return_mean"),
+                             [a.get(f"{r}_return_mean") for r in ("replayed", "tracked")], a.get("dynamics_error_mean"))
+                            for a in aug if a.get("true_return_mean") is not None]
+                    sup.append(" / ".join(f"{t:.0f} ({g:.0f})" + "".join(f" → {r:.0f}" for r in rs if r is not None)
+                                          + (f" [{e:.2f}]" if e is not None else "") for t, g, rs, e in vals) or "—")
             paper = PAPER_TABLE2.get(re.sub(r"-v\d+$", "", task) + "-v2", {}).get(method)
             paper_cell = " / ".join(f"{v:.1f}" for v in paper) if paper else "—"
             rows.append(f"| {task} | {method} | " + " | ".join(out) + f" | {paper_cell} | " + " ; ".join(sup) + " |")

@@ -30,11 +30,11 @@ import hydra
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from torchrl_ftb.analysis import locomotion_replays
+from torchrl_ftb.analysis import locomotion_replays, locomotion_tracked_returns, observation_scale
 from torchrl_ftb.augmentation import AUGMENTATIONS, build_supplement, merge_datasets
 from torchrl_ftb.baselines import METHODS, LABEL_METHODS, run_baseline
 from torchrl_ftb.data import atomic_torch_save, atomic_write_text
-from torchrl_ftb.data.labels import make_scripted_labels, make_teacher
+from torchrl_ftb.data.labels import make_scripted_labels, make_teacher, true_return
 from torchrl_ftb.preference import QUERY_STRATEGIES, make_query_labels
 from torchrl_ftb.datasets import dataset_kwargs, make_dataset
 from torchrl_ftb.envs import check_env_matches, dynamics_oracle, env_kind, make_env, normalized_score_fn, true_reward_fn
@@ -97,7 +97,21 @@ def check_config(cfg: DictConfig) -> None:
     strategy = query_strategy(cfg)
     if strategy not in QUERY_STRATEGIES:
         raise ValueError(f"labels.query.strategy={strategy!r}: choose one of {list(QUERY_STRATEGIES)}")
-    env_kind(cfg.env.name)
+    if env_kind(cfg.env.name) != "locomotion" and cfg.augmentation.get("tracked", False):  # env_kind: a known env
+        raise ValueError(f"augmentation.tracked=true with env.name={cfg.env.name!r}: the tracked reading needs a "
+                         "locomotion env (its simulator state is rebuilt from an observation)")
+
+
+def supplement_readings(cfg: DictConfig, trajs) -> dict[str, Any]:
+    """A locomotion supplement's simulator readings: its actions replayed open loop, and with
+    ``augmentation.tracked`` its paths tracked in closed loop (the shooting tracker, on the distance scale of the
+    dataset's top ``augmentation.flow.top_k`` by return: the trajectories the flow starts from)."""
+    env = str(cfg.env.name)
+    readings = {"replayed": lambda t: locomotion_replays(env, t)[0]}
+    if cfg.augmentation.get("tracked", False):
+        scale = observation_scale(trajs[true_return(trajs).argsort(descending=True)[: int(cfg.augmentation.flow.top_k)]])
+        readings["tracked"] = lambda t: locomotion_tracked_returns(env, t, scale=scale)[0]
+    return readings
 
 
 def make_supplement(cfg: DictConfig, trajs, *, device, logger) -> tuple[Any, dict | None]:
@@ -114,7 +128,7 @@ def make_supplement(cfg: DictConfig, trajs, *, device, logger) -> tuple[Any, dic
         num_blocks=int(aug.num_blocks), seed=int(cfg.seed),
         true_reward_fn=true_reward_fn(cfg.env.name) if aug.true_reward else None,
         oracle_step=dynamics_oracle(cfg.env.name) if locomotion else None,
-        replay_fn=(lambda t: locomotion_replays(str(cfg.env.name), t)[0]) if locomotion else None,
+        readings=supplement_readings(cfg, trajs) if locomotion else None,
         device=device, logger=logger, progress=bool(cfg.progress),
     )
     merged = merge_datasets(trajs, supplement) if supplement.batch_size[0] else trajs
@@ -146,7 +160,8 @@ def _report(metrics: dict[str, Any]) -> str:
                   "| return | mean | max |", "|---|---|---|",
                   f"| dataset | {aug['dataset_return_mean']:.2f} | {aug['dataset_return_max']:.2f} |"]
         for name, key in (("supplement, generated reward", "generated_return"), ("supplement, true reward", "true_return"),
-                          ("supplement, actions replayed open loop", "replayed_return")):
+                          ("supplement, actions replayed open loop", "replayed_return"),
+                          ("supplement, paths tracked in closed loop", "tracked_return")):
             if aug.get(f"{key}_mean") is not None:
                 lines.append(f"| {name} | {aug[f'{key}_mean']:.2f} | {aug[f'{key}_max']:.2f} |")
         if aug.get("dynamics_error_mean") is not None:

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from omegaconf import OmegaConf
 from tensordict.nn import TensorDictModule
 
 from torchrl_ftb.analysis import toy_oracle_step
@@ -143,10 +144,12 @@ def test_build_supplement_is_cached_and_checked(supplements):
     assert "replayed_return_mean" not in info
     # a replay function (here a stand-in: twice the stored reward) is read for a cached supplement too
     seen = []
-    _, replayed = build_supplement("ftb", data, **common, replay_fn=lambda t: seen.append(t) or 2 * true_return(t))
+    _, replayed = build_supplement("ftb", data, **common, readings={
+        "replayed": lambda t: seen.append(t) or 2 * true_return(t), "tracked": lambda t: true_return(t) - 1})
     assert replayed["loaded"] and len(seen) == 1 and seen[0].batch_size == again.batch_size
     assert replayed["replayed_return_mean"] == pytest.approx(2 * float(true_return(again).mean()), rel=1e-6)
     assert replayed["replayed_return_max"] == pytest.approx(2 * float(true_return(again).max()), rel=1e-6)
+    assert replayed["tracked_return_mean"] == pytest.approx(float(true_return(again).mean()) - 1, rel=1e-6)
     # a different setting never reuses the supplement: it lands in another directory
     changed = {**common, "flow": {**common["flow"], "threshold": 1.2}, "diffuser": {**common["diffuser"], "steps": 1}}
     assert build_supplement("ftb", data, **changed)[1]["path"] != info["path"]
@@ -189,3 +192,23 @@ def test_baselines_recipe_with_augmentation(tmp_path):
         recipe.run(mismatch)  # resume into a finished run of another augmentation
     with pytest.raises(ValueError, match="only"):
         recipe.run(bad)
+    with pytest.raises(ValueError, match="augmentation.tracked=true with env.name='toy'"):
+        recipe.run(OmegaConf.merge(cfgs["ftb"], {"augmentation": {"tracked": True}}))
+
+
+def test_supplement_readings_track_a_locomotion_supplement():
+    """``augmentation.tracked``: the recipe's closed-loop reading of a locomotion supplement. Recorded paths (which
+    the simulator can follow) are tracked to their recorded return, on the scale of the data's top-k."""
+    from torchrl_ftb.envs import make_locomotion_env
+
+    recipe = load_script(ROOT / "recipes" / "baselines.py", "recipe_baselines_readings")
+    env = make_locomotion_env("hopper", seed=0)
+    trajs = torch.stack([env.rollout(6) for _ in range(3)]).select("observation", "action", ("next", "reward"))
+    trajs["mask"] = torch.ones(3, 6, dtype=torch.bool)
+    cfg = OmegaConf.create({"env": {"name": "hopper"}, "augmentation": {"tracked": False, "flow": {"top_k": 2}}})
+    assert set(recipe.supplement_readings(cfg, trajs)) == {"replayed"}
+    cfg.augmentation.tracked = True
+    readings = recipe.supplement_readings(cfg, trajs)
+    recorded = true_return(trajs).double()
+    for name in ("replayed", "tracked"):
+        assert torch.allclose(readings[name](trajs), recorded, atol=1e-3), name

@@ -21,7 +21,13 @@ from torchrl_ftb.analysis.replay import (
     replay_returns,
     summarize_samples,
 )
-from torchrl_ftb.analysis.tracking import locomotion_tracked_improvement, track_paths, tracked_improvement
+from torchrl_ftb.analysis.tracking import (
+    locomotion_tracked_improvement,
+    locomotion_tracked_returns,
+    observation_scale,
+    track_paths,
+    tracked_improvement,
+)
 
 __all__ = [
     "dynamics_error",
@@ -32,9 +38,11 @@ __all__ = [
     "locomotion_open_loop_improvement",
     "locomotion_replays",
     "locomotion_tracked_improvement",
+    "locomotion_tracked_returns",
     "match_rows",
     "metaworld_state_returns",
     "nearest_start",
+    "observation_scale",
     "novelty",
     "open_loop_improvement",
     "per_step_mean",

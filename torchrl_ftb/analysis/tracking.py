@@ -175,6 +175,48 @@ def tracked_improvement(
             "samples": samples}
 
 
+def observation_scale(trajs: TensorDictBase) -> torch.Tensor:
+    """``float64 [obs_dim]``: the per-dimension std of ``trajs``' valid observations (floored at 1e-6), the distance
+    scale of the locomotion tracker (:func:`locomotion_tracked_returns`)."""
+    return trajs["observation"][trajs["mask"]].double().std(0).clamp_min(1e-6)
+
+
+def locomotion_tracked_returns(env_name: str, trajs: TensorDictBase, *, scale: torch.Tensor | None = None,
+                               candidates: int = 64, noise: float = 0.3, uniform: float = 0.5, lookahead: int = 1,
+                               seed: int = 0) -> tuple[torch.Tensor, list[dict]]:
+    """Closed-loop tracked returns of locomotion trajectories (``observation``, ``action``, ``mask``; ``[N, H]``):
+    the tracked counterpart of :func:`~torchrl_ftb.analysis.locomotion_replays`.
+
+    Each path is tracked from the state of its own first observation by
+    :func:`~torchrl_ftb.envs.track_locomotion_paths` (actions clipped to ``[-1, 1]``; ``candidates``, ``noise``,
+    ``uniform``, ``lookahead``, ``seed`` as there), until it ends or the env ends the episode.
+
+    Args:
+        env_name: the locomotion env.
+        trajs: the trajectories.
+        scale: ``[obs_dim]`` the distance's per-dimension scale; default :func:`observation_scale` of ``trajs``.
+            Pass one scale to read several sets alike (:func:`locomotion_tracked_improvement` uses the top-k's).
+
+    Returns:
+        ``(returns float64 [N], episodes)``: the tracked episodes' plain returns and their per-step records.
+
+    Example:
+        >>> from torchrl_ftb.envs import make_locomotion_env
+        >>> td = make_locomotion_env("hopper", seed=0).rollout(8)
+        >>> trajs = td.select("observation", "action").unsqueeze(0)
+        >>> trajs["mask"] = torch.ones(1, 8, dtype=torch.bool)
+        >>> returns, _ = locomotion_tracked_returns("hopper", trajs, candidates=4)
+        >>> abs(float(returns[0]) - float(td["next", "reward"].sum())) < 1e-3
+        True
+    """
+    t = clip_actions(trajs.select("observation", "action", "mask").to("cpu").clone(), 1.0)
+    lengths = [int(n) for n in t["mask"].sum(-1).tolist()]
+    eps = track_locomotion_paths(env_name, t["observation"], t["action"], lengths,
+                                 scale=observation_scale(t) if scale is None else scale, candidates=candidates,
+                                 noise=noise, uniform=uniform, lookahead=lookahead, seed=seed)
+    return torch.tensor([float(ep["reward"].sum()) for ep in eps], dtype=torch.float64), eps
+
+
 def locomotion_tracked_improvement(final: TensorDictBase, original: TensorDictBase, generated: torch.Tensor, *,
                                    env_name: str, candidates: int = 64, noise: float = 0.3, uniform: float = 0.5,
                                    lookahead: int = 1, seed: int = 0, progress: bool = False) -> dict:
@@ -206,15 +248,13 @@ def locomotion_tracked_improvement(final: TensorDictBase, original: TensorDictBa
         True
     """
     generated, sets, claimed = locomotion_sets("locomotion_tracked_improvement", env_name, final, original, generated)
-    scale = sets[0]["observation"][sets[0]["mask"]].double().std(0).clamp_min(1e-6)
+    scale = observation_scale(sets[0])
     tracked, episodes = [], []
     for t in tqdm(sets, desc=f"{env_name} tracked paths (top-k, final set)", disable=not progress):
-        lengths = [int(n) for n in t["mask"].sum(-1).tolist()]
-        eps = track_locomotion_paths(env_name, t["observation"], t["action"], lengths, scale=scale,
-                                     candidates=candidates, noise=noise, uniform=uniform, lookahead=lookahead,
-                                     seed=seed)
-        tracked.append(torch.tensor([float(ep["reward"].sum()) for ep in eps], dtype=torch.float64))
-        episodes.append(list(zip(lengths, eps)))
+        returns, eps = locomotion_tracked_returns(env_name, t, scale=scale, candidates=candidates, noise=noise,
+                                                  uniform=uniform, lookahead=lookahead, seed=seed)
+        tracked.append(returns)
+        episodes.append(list(zip([int(n) for n in t["mask"].sum(-1).tolist()], eps)))
 
     def path_error(ep: dict) -> float:
         return float(ep["path_error"].mean()) if len(ep["path_error"]) else 0.0

@@ -271,7 +271,7 @@ def build_supplement(
     seed: int = 0,
     true_reward_fn: Callable | None = None,
     oracle_step: Callable | None = None,
-    replay_fn: Callable[[TensorDictBase], torch.Tensor] | None = None,
+    readings: Mapping[str, Callable[[TensorDictBase], torch.Tensor]] | None = None,
     device: torch.device | str = "cpu",
     resume: bool = True,
     logger: Any = None,
@@ -305,9 +305,11 @@ def build_supplement(
         oracle_step: ground-truth dynamics ``(observation, action) -> next observation`` (e.g.
             ``partial(torchrl_ftb.envs.oracle_step, "hopper")``); the supplement's per-step
             dynamics error (:func:`~torchrl_ftb.analysis.dynamics_error`) is reported with it.
-        replay_fn: ``trajectories [M, H] -> returns [M]`` of their actions replayed open loop in the simulator
-            (e.g. ``lambda t: torchrl_ftb.analysis.locomotion_replays("hopper", t)[0]``); the supplement's
-            replayed return (mean, max) is reported with it, for a cached supplement too (not stored).
+        readings: ``{name: trajectories [M, H] -> returns [M]}``, the supplement executed in the simulator, e.g.
+            ``{"replayed": lambda t: torchrl_ftb.analysis.locomotion_replays("hopper", t)[0]}`` (open loop) or
+            ``{"tracked": lambda t: torchrl_ftb.analysis.locomotion_tracked_returns("hopper", t)[0]}`` (closed
+            loop); each one's ``{name}_return_mean`` / ``_max`` is reported, for a cached supplement too (not
+            stored).
 
     Returns:
         ``(supplement [M, H] with TRANSITION_KEYS, info)``; ``info`` has the counts, the
@@ -339,7 +341,7 @@ def build_supplement(
         if not isinstance(ckpt, dict) or ckpt.get("format") != SUPPLEMENT_FORMAT:
             raise ValueError(f"{out_file}: not a torchrl_ftb supplement file")
         supplement = TensorDict(ckpt["data"], batch_size=ckpt["batch_size"])
-        return supplement, {**ckpt["info"], **_replayed(supplement, replay_fn), "path": str(path), "loaded": True}
+        return supplement, {**ckpt["info"], **_readings(supplement, readings), "path": str(path), "loaded": True}
 
     obs_dim, act_dim = trajs.get("observation").shape[-1], trajs.get("action").shape[-1]
     horizon = int(trajs.batch_size[1])
@@ -386,15 +388,18 @@ def build_supplement(
     info["dataset_transitions"] = int(trajs.get("mask").sum())
     atomic_torch_save({"format": SUPPLEMENT_FORMAT, "data": supplement.to_dict(),
                        "batch_size": list(supplement.batch_size), "info": info}, out_file)
-    return supplement, {**info, **_replayed(supplement, replay_fn), "path": str(path), "loaded": False}
+    return supplement, {**info, **_readings(supplement, readings), "path": str(path), "loaded": False}
 
 
-def _replayed(supplement: TensorDictBase, replay_fn: Callable | None) -> dict[str, float]:
-    """The supplement's open-loop replayed return (``replay_fn``), beside the true reward of its own transitions."""
-    if replay_fn is None or not supplement.batch_size[0]:
-        return {}
-    returns = torch.as_tensor(replay_fn(supplement), dtype=torch.float64)
-    return {"replayed_return_mean": float(returns.mean()), "replayed_return_max": float(returns.max())}
+def _readings(supplement: TensorDictBase, readings: Mapping[str, Callable] | None) -> dict[str, float]:
+    """The supplement's returns as each of ``readings`` executes it, beside the true reward of its own transitions."""
+    out: dict[str, float] = {}
+    if not supplement.batch_size[0]:
+        return out
+    for name, fn in (readings or {}).items():
+        returns = torch.as_tensor(fn(supplement), dtype=torch.float64)
+        out.update({f"{name}_return_mean": float(returns.mean()), f"{name}_return_max": float(returns.max())})
+    return out
 
 
 def _describe(generated: TensorDictBase, data_returns: torch.Tensor, true_reward_fn: Callable | None) -> dict:
