@@ -10,7 +10,8 @@
 Stages: dataset (the generated, cached dataset FTB uses) → scripted labels (same seed →
 same pairs) → optionally a supplement of generated trajectories (``augmentation.kind``: ``ftb``
 or ``synthetic``, ``torchrl_ftb.augmentation.build_supplement``, cached and resumable under
-``augmentation.cache_dir``) merged into the data → the method
+``augmentation.cache_dir``; on locomotion its actions are replayed open loop, and with ``augmentation.tracked=true``
+its paths tracked in closed loop, to read what it is worth executed) merged into the data → the method
 (``torchrl_ftb.baselines.run_baseline``) → evaluation with
 ``torchrl_ftb.policy.evaluate_policy`` (FTB's protocol). The run directory
 (``run_dir``, as in recipes/ftb_offline.py) receives ``config.yaml`` (resolved), ``actor.pt`` (state dict,
