@@ -14,10 +14,12 @@ Usage::
     python bench/supplement_readings.py --dataset hopper-medium-replay \\
         --supplements s0=RUNS/supplements/hopper-medium-replay/seed0/ftb-<hash>/supplement.pt ... \\
         --out bench/results/supplement_readings.json
+    python bench/supplement_readings.py --plot readings.png --from-json A.json B.json   # plot finished readings
 """
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 
@@ -27,7 +29,11 @@ from tensordict import TensorDict
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from torchrl_ftb.analysis import locomotion_open_loop_improvement, locomotion_tracked_improvement  # noqa: E402
+from torchrl_ftb.analysis import (  # noqa: E402
+    locomotion_open_loop_improvement,
+    locomotion_tracked_improvement,
+    save_figure,
+)
 from torchrl_ftb.data import read_checkpoint, true_return  # noqa: E402
 from torchrl_ftb.datasets import make_dataset  # noqa: E402
 from torchrl_ftb.provenance import run_record, write_json  # noqa: E402
@@ -63,15 +69,45 @@ def readings(dataset: str, supplement_path: str | Path, *, top_k: int, candidate
             "open_loop_terminated_rate": open_loop["replay_terminated_rate"]}
 
 
+def plot_readings(rows: dict[str, dict], path: str | Path) -> Path:
+    """Grouped bars: each supplement's mean return claimed / open loop / tracked, the top-k's mean and the
+    data's best as lines (the top-k reads the same in all three)."""
+    import matplotlib.pyplot as plt
+
+    labels = list(rows)
+    fig, ax = plt.subplots(figsize=(1.2 * len(labels) + 2, 3.5))
+    for j, (key, name) in enumerate((("claimed", "claimed by its transitions"), ("open_loop", "open loop"),
+                                     ("tracked", "tracked (closed loop)"))):
+        ax.bar([i + 0.27 * (j - 1) for i in range(len(labels))],
+               [rows[k][key]["true_return_mean_after"] for k in labels], width=0.27, label=name)
+    first = rows[labels[0]]["tracked"]
+    ax.axhline(first["true_return_mean_before"], color="k", ls="--", lw=1, label="top-k mean")
+    ax.axhline(first["true_return_max_before"], color="k", ls=":", lw=1, label="top-k max (data's best)")
+    ax.set_xticks(range(len(labels)), labels)
+    ax.set_ylabel("return (mean over the supplement)")
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.0))
+    return save_figure(fig, path)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--dataset", default="hopper-medium-replay", help="<env>-<kind> of the supplements' data")
-    parser.add_argument("--supplements", nargs="+", required=True, metavar="LABEL=PATH")
+    parser.add_argument("--supplements", nargs="+", metavar="LABEL=PATH")
     parser.add_argument("--top-k", type=int, default=100, help="the augmentation flow's top-k (App. B.5: 100)")
     parser.add_argument("--candidates", type=int, default=64, help="the tracker's actions tried per step")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--out", type=Path, help="the results JSON")
+    parser.add_argument("--plot", type=Path, help="a PNG of the readings (with --from-json: of those files')")
+    parser.add_argument("--from-json", type=Path, nargs="+", help="plot these finished readings; run nothing")
     args = parser.parse_args()
+    if args.from_json:
+        if args.plot is None:
+            parser.error("--from-json needs --plot")
+        rows = {k: v for f in args.from_json for k, v in json.loads(f.read_text())["results"].items()}
+        print(plot_readings(rows, args.plot))
+        return
+    if not args.supplements or args.out is None:
+        parser.error("--supplements and --out are needed to read supplements")
     rows = {}
     for item in args.supplements:
         label, sep, path = item.partition("=")
@@ -84,6 +120,8 @@ def main() -> None:
               f" -> {r['open_loop']['true_return_mean_after']:.0f}, tracked {r['tracked']['true_return_mean_before']:.0f}"
               f" -> {r['tracked']['true_return_mean_after']:.0f}", flush=True)
     write_json(args.out, {**run_record(config={k: str(v) for k, v in vars(args).items()}), "results": rows})
+    if args.plot is not None:
+        plot_readings(rows, args.plot)
 
 
 if __name__ == "__main__":
