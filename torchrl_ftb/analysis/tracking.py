@@ -212,8 +212,8 @@ def locomotion_tracked_returns(env_name: str, trajs: TensorDictBase, *, scale: t
     t = clip_actions(trajs.select("observation", "action", "mask").to("cpu").clone(), 1.0)
     lengths = [int(n) for n in t["mask"].sum(-1).tolist()]
     eps = track_locomotion_paths(env_name, t["observation"], t["action"], lengths,
-                                 scale=observation_scale(t) if scale is None else scale, candidates=candidates,
-                                 noise=noise, uniform=uniform, lookahead=lookahead, seed=seed)
+                                 scale=observation_scale(t) if scale is None else torch.as_tensor(scale).cpu(),
+                                 candidates=candidates, noise=noise, uniform=uniform, lookahead=lookahead, seed=seed)
     return torch.tensor([float(ep["reward"].sum()) for ep in eps], dtype=torch.float64), eps
 
 
