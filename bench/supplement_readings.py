@@ -24,7 +24,6 @@ import sys
 from pathlib import Path
 
 import torch
-from tensordict import TensorDict
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -34,24 +33,16 @@ from torchrl_ftb.analysis import (  # noqa: E402
     locomotion_tracked_improvement,
     save_figure,
 )
-from torchrl_ftb.data import read_checkpoint, true_return  # noqa: E402
+from torchrl_ftb.augmentation import load_supplement  # noqa: E402
+from torchrl_ftb.data import true_return  # noqa: E402
 from torchrl_ftb.datasets import make_dataset  # noqa: E402
 from torchrl_ftb.provenance import run_record, write_json  # noqa: E402
 
 
-def load_supplement(path: str | Path) -> tuple[TensorDict, dict]:
-    """``(trajectories [M, H], info)`` of a supplement file written by
-    :func:`torchrl_ftb.augmentation.build_supplement`."""
-    ckpt = read_checkpoint(Path(path), what="supplement")
-    if not isinstance(ckpt, dict) or "data" not in ckpt or "batch_size" not in ckpt:
-        raise ValueError(f"{path}: not a torchrl_ftb supplement file (no 'data' / 'batch_size')")
-    return TensorDict(ckpt["data"], batch_size=ckpt["batch_size"]), dict(ckpt.get("info", {}))
-
-
-def readings(dataset: str, supplement_path: str | Path, *, top_k: int, candidates: int, seed: int) -> dict:
-    """The dataset's top-``top_k`` by return -> the supplement, claimed / open loop / tracked (module docstring)."""
-    env, kind = dataset.split("-", 1)
-    data, _ = make_dataset(env, kind=kind, progress=False)
+def readings(dataset: str, data, supplement_path: str | Path, *, top_k: int, candidates: int, seed: int) -> dict:
+    """The top-``top_k`` by return of ``data`` (the ``dataset``'s trajectories) -> the supplement, claimed / open
+    loop / tracked (module docstring)."""
+    env = dataset.split("-", 1)[0]
     supplement, info = load_supplement(supplement_path)
     if supplement.batch_size[0] == 0:
         raise ValueError(f"{supplement_path}: the supplement holds no trajectories")
@@ -108,12 +99,14 @@ def main() -> None:
         return
     if not args.supplements or args.out is None:
         parser.error("--supplements and --out are needed to read supplements")
+    env, kind = args.dataset.split("-", 1)
+    data, _ = make_dataset(env, kind=kind, progress=False)
     rows = {}
     for item in args.supplements:
         label, sep, path = item.partition("=")
         if not sep:
             parser.error(f"--supplements: {item!r} is not LABEL=PATH")
-        rows[label] = readings(args.dataset, path, top_k=args.top_k, candidates=args.candidates, seed=args.seed)
+        rows[label] = readings(args.dataset, data, path, top_k=args.top_k, candidates=args.candidates, seed=args.seed)
         r = rows[label]
         print(f"{label}: mean top-k -> supplement: claimed {r['claimed']['true_return_mean_before']:.0f} -> "
               f"{r['claimed']['true_return_mean_after']:.0f}, open loop {r['open_loop']['true_return_mean_before']:.0f}"

@@ -142,7 +142,7 @@ def test_build_supplement_is_cached_and_checked(supplements):
     assert info["loaded"] and info["path"] == out["ftb"][1]["path"]
     assert torch.equal(again["observation"], out["ftb"][0]["observation"])
     assert "replayed_return_mean" not in info
-    # a replay function (here a stand-in: twice the stored reward) is read for a cached supplement too
+    # simulator readings (here stand-ins computed from the stored reward) are read for a cached supplement too
     seen = []
     _, replayed = build_supplement("ftb", data, **common, readings={
         "replayed": lambda t: seen.append(t) or 2 * true_return(t), "tracked": lambda t: true_return(t) - 1})

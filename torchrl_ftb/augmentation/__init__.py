@@ -6,6 +6,7 @@ from torchrl_ftb.augmentation.augment import (
     build_supplement,
     ends_in_termination,
     flow_supplement,
+    load_supplement,
     merge_datasets,
     synthetic_supplement,
 )
@@ -17,6 +18,7 @@ __all__ = [
     "build_supplement",
     "ends_in_termination",
     "flow_supplement",
+    "load_supplement",
     "merge_datasets",
     "synthetic_supplement",
 ]

@@ -69,6 +69,7 @@ __all__ = [
     "build_supplement",
     "ends_in_termination",
     "flow_supplement",
+    "load_supplement",
     "merge_datasets",
     "synthetic_supplement",
 ]
@@ -84,6 +85,15 @@ TRANSITION_KEYS: tuple = ("observation", "action", "mask", ("next", "observation
                           ("next", "done"), ("next", "terminated"), ("next", "truncated"))
 GENERATED_KEYS = ("observation", "action", "mask", REWARD_KEY)
 SUPPLEMENT_FORMAT = "torchrl_ftb.supplement"
+
+
+def load_supplement(path: str | Path) -> tuple[TensorDict, dict[str, Any]]:
+    """``(supplement [M, H], info)`` of a ``supplement.pt`` written by :func:`build_supplement`
+    (``torch.load(weights_only=True)``); anything else raises a ``ValueError`` naming the file."""
+    ckpt = read_checkpoint(Path(path), what="supplement")
+    if not isinstance(ckpt, dict) or ckpt.get("format") != SUPPLEMENT_FORMAT:
+        raise ValueError(f"{path}: not a torchrl_ftb supplement file")
+    return TensorDict(ckpt["data"], batch_size=ckpt["batch_size"]), dict(ckpt["info"])
 
 
 def ends_in_termination(trajs: TensorDictBase) -> bool:
@@ -337,11 +347,8 @@ def build_supplement(
     atomic_write_text(path / "config.json", json.dumps(config, indent=2, default=str))
     out_file = path / "supplement.pt"
     if resume and out_file.exists():
-        ckpt = read_checkpoint(out_file, what="supplement")
-        if not isinstance(ckpt, dict) or ckpt.get("format") != SUPPLEMENT_FORMAT:
-            raise ValueError(f"{out_file}: not a torchrl_ftb supplement file")
-        supplement = TensorDict(ckpt["data"], batch_size=ckpt["batch_size"])
-        return supplement, {**ckpt["info"], **_readings(supplement, readings), "path": str(path), "loaded": True}
+        supplement, info = load_supplement(out_file)
+        return supplement, {**info, **_readings(supplement, readings), "path": str(path), "loaded": True}
 
     obs_dim, act_dim = trajs.get("observation").shape[-1], trajs.get("action").shape[-1]
     horizon = int(trajs.batch_size[1])

@@ -14,11 +14,10 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[3]
-sys.path[:0] = [str(ROOT), str(ROOT / "bench")]
-
-from supplement_readings import load_supplement  # noqa: E402
+sys.path.insert(0, str(ROOT))
 
 from torchrl_ftb.analysis import dynamics_error, locomotion_replays  # noqa: E402
+from torchrl_ftb.augmentation import load_supplement  # noqa: E402
 from torchrl_ftb.data import true_return  # noqa: E402
 from torchrl_ftb.datasets import make_dataset  # noqa: E402
 from torchrl_ftb.envs import dynamics_oracle  # noqa: E402
