@@ -8,14 +8,16 @@ augments a dataset once and trains both algorithms on it.
 
     python bench/table2.py --tasks hopper-medium-replay --seeds 0,1,2 \\
         --extra eval.max_steps=1000                     # run the cells
-    python bench/table2.py --summary                    # print the Markdown table
+    python bench/table2.py --summary                    # print the Markdown tables (per kind; paired by seed)
 
 Cells: ``bench/results/table2/<kind>/<method>__<task>__return__seed<k>.json``.
 """
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
+import math
 import re
 import statistics
 import sys
@@ -69,6 +71,48 @@ def summary(results_dir: Path) -> str:
     return "\n".join(rows)
 
 
+def sign_flip_p(diffs: list[float]) -> float:
+    """Two-sided exact paired randomisation test of "mean difference 0": the share of the ``2^n`` sign
+    assignments of ``diffs`` whose mean is at least as far from 0 as the observed one.
+
+    Written out (no scipy in our dependencies); with the few seeds a Table-2 cell has, the smallest
+    possible p is ``2 / 2^n`` (n = 5: 0.0625), which the table should let a reader see.
+
+    Example:
+        >>> sign_flip_p([1.0, 2.0, 3.0])  # only all-plus and all-minus reach |mean| 2
+        0.25
+    """
+    n = len(diffs)
+    if not 1 <= n <= 20:
+        raise ValueError(f"sign_flip_p: needs 1 to 20 paired differences (exact enumeration), got {n}")
+    observed = abs(sum(diffs)) - 1e-9 * max(1.0, sum(map(abs, diffs)))
+    hits = sum(abs(sum(s * d for s, d in zip(signs, diffs))) >= observed
+               for signs in itertools.product((1.0, -1.0), repeat=n))
+    return hits / 2 ** n
+
+
+def paired(results_dir: Path) -> str:
+    """Markdown: each augmented kind against ``none`` on the seeds both have, per task and method -- the
+    per-seed differences, their mean ± standard error, how many are positive, and :func:`sign_flip_p`."""
+    cells = {kind: {(c["env"], c["method"], int(c["seed"])): float(c["score"]) for c in load_cells(results_dir / kind)}
+             for kind in KINDS}
+    rows = ["| task | method | kind − none | seeds | per seed | mean ± s.e. | higher | p (sign flip, two-sided) |",
+            "|---|---|---|---|---|---|---|---|"]
+    for task, method in sorted({key[:2] for key in cells["none"]}):
+        for kind in KINDS[1:]:
+            seeds = sorted(s for (t, m, s) in cells[kind] if (t, m) == (task, method) and (t, m, s) in cells["none"])
+            if not seeds:
+                continue
+            diffs = [cells[kind][(task, method, s)] - cells["none"][(task, method, s)] for s in seeds]
+            mean = statistics.mean(diffs)
+            se = statistics.stdev(diffs) / math.sqrt(len(diffs)) if len(diffs) > 1 else float("nan")
+            rows.append(f"| {task} | {method} | {kind} | {', '.join(map(str, seeds))} | "
+                        + " / ".join(f"{d:+.2f}" for d in diffs)
+                        + f" | {mean:+.2f} ± {se:.2f} | {sum(d > 0 for d in diffs)}/{len(diffs)} | "
+                          f"{sign_flip_p(diffs):.3f} |")
+    return "\n".join(rows)
+
+
 def main(argv: Iterable[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--tasks", type=_csv, default=["hopper-medium-replay"])
@@ -84,6 +128,8 @@ def main(argv: Iterable[str] | None = None) -> int:
     args = parser.parse_args(list(argv) if argv is not None else None)
     if args.summary:
         print(summary(args.results_dir))
+        print()
+        print(paired(args.results_dir))
         return 0
     failures = 0
     for task in args.tasks:

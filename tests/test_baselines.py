@@ -382,3 +382,21 @@ def test_bc_ceiling_selects_successes_or_whole_groups():
     few = bc_ceiling.select(group, success, groups, "on_task", k=2, generator=torch.Generator().manual_seed(0),
                             with_failures=True)
     assert few.numel() == 2 and set(few.tolist()) <= {0, 1, 2, 3}
+
+
+def test_table2_pairs_kinds_with_none_by_seed(tmp_path):
+    table1 = load_script(ROOT / "bench" / "table1.py", "bench_table1")
+    table2 = load_script(ROOT / "bench" / "table2.py", "bench_table2")
+    task = "hopper-medium-replay"
+    scores = {"none": {0: 5.0, 1: 6.0, 2: 7.0}, "ftb": {0: 6.0, 1: 8.0, 2: 10.0, 3: 99.0}}  # seed 3 has no pair
+    for kind, per_seed in scores.items():
+        for seed, score in per_seed.items():
+            table1.write_cell_json(tmp_path / kind / f"td3bc__{task}__return__seed{seed}.json",
+                                   {"method": "td3bc", "env": task, "seed": seed, "score": score})
+    row = next(line for line in table2.paired(tmp_path).splitlines() if "| ftb |" in line)
+    # differences +1, +2, +3: mean 2, s.e. 1/sqrt(3); only all-plus and all-minus reach |mean| 2 of 8 sign sets
+    assert row == f"| {task} | td3bc | ftb | 0, 1, 2 | +1.00 / +2.00 / +3.00 | +2.00 ± 0.58 | 3/3 | 0.250 |"
+    assert "synthetic" not in table2.paired(tmp_path)  # a kind with no cells gives no row
+    assert table2.sign_flip_p([0.5, -0.5]) == 1.0 and table2.sign_flip_p([2.0] * 5) == 2 / 32
+    with pytest.raises(ValueError, match="1 to 20"):
+        table2.sign_flip_p([])
