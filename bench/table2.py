@@ -91,22 +91,27 @@ def sign_flip_p(diffs: list[float]) -> float:
     return hits / 2 ** n
 
 
+#: what :func:`paired` compares, (a, b): a − b on the seeds both have
+PAIRS = (("synthetic", "none"), ("ftb", "none"), ("ftb", "synthetic"))
+
+
 def paired(results_dir: Path) -> str:
-    """Markdown: each augmented kind against ``none`` on the seeds both have, per task and method -- the
-    per-seed differences, their mean ± standard error, how many are positive, and :func:`sign_flip_p`."""
+    """Markdown: each augmented kind against ``none``, and FTB against SYNTHETIC (:data:`PAIRS`), on the seeds
+    both have, per task and method -- the per-seed differences, their mean ± standard error, how many are
+    positive, and :func:`sign_flip_p`."""
     cells = {kind: {(c["env"], c["method"], int(c["seed"])): float(c["score"]) for c in load_cells(results_dir / kind)}
              for kind in KINDS}
-    rows = ["| task | method | kind − none | seeds | per seed | mean ± s.e. | higher | p (sign flip, two-sided) |",
+    rows = ["| task | method | comparison | seeds | per seed | mean ± s.e. | higher | p (sign flip, two-sided) |",
             "|---|---|---|---|---|---|---|---|"]
-    for task, method in sorted({key[:2] for key in cells["none"]}):
-        for kind in KINDS[1:]:
-            seeds = sorted(s for (t, m, s) in cells[kind] if (t, m) == (task, method) and (t, m, s) in cells["none"])
+    for task, method in sorted({key[:2] for kind in KINDS for key in cells[kind]}):
+        for a, b in PAIRS:
+            seeds = sorted(s for (t, m, s) in cells[a] if (t, m) == (task, method) and (t, m, s) in cells[b])
             if not seeds:
                 continue
-            diffs = [cells[kind][(task, method, s)] - cells["none"][(task, method, s)] for s in seeds]
+            diffs = [cells[a][(task, method, s)] - cells[b][(task, method, s)] for s in seeds]
             mean = statistics.mean(diffs)
             se = statistics.stdev(diffs) / math.sqrt(len(diffs)) if len(diffs) > 1 else float("nan")
-            rows.append(f"| {task} | {method} | {kind} | {', '.join(map(str, seeds))} | "
+            rows.append(f"| {task} | {method} | {a} − {b} | {', '.join(map(str, seeds))} | "
                         + " / ".join(f"{d:+.2f}" for d in diffs)
                         + f" | {mean:+.2f} ± {se:.2f} | {sum(d > 0 for d in diffs)}/{len(diffs)} | "
                           f"{sign_flip_p(diffs):.3f} |")

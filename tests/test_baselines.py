@@ -393,10 +393,13 @@ def test_table2_pairs_kinds_with_none_by_seed(tmp_path):
         for seed, score in per_seed.items():
             table1.write_cell_json(tmp_path / kind / f"td3bc__{task}__return__seed{seed}.json",
                                    {"method": "td3bc", "env": task, "seed": seed, "score": score})
-    row = next(line for line in table2.paired(tmp_path).splitlines() if "| ftb |" in line)
+    row = next(line for line in table2.paired(tmp_path).splitlines() if "| ftb − none |" in line)
     # differences +1, +2, +3: mean 2, s.e. 1/sqrt(3); only all-plus and all-minus reach |mean| 2 of 8 sign sets
-    assert row == f"| {task} | td3bc | ftb | 0, 1, 2 | +1.00 / +2.00 / +3.00 | +2.00 ± 0.58 | 3/3 | 0.250 |"
+    assert row == f"| {task} | td3bc | ftb − none | 0, 1, 2 | +1.00 / +2.00 / +3.00 | +2.00 ± 0.58 | 3/3 | 0.250 |"
     assert "synthetic" not in table2.paired(tmp_path)  # a kind with no cells gives no row
+    table1.write_cell_json(tmp_path / "synthetic" / f"td3bc__{task}__return__seed2.json",
+                           {"method": "td3bc", "env": task, "seed": 2, "score": 4.0})
+    assert f"| {task} | td3bc | ftb − synthetic | 2 | +6.00 | +6.00 ± nan | 1/1 | 1.000 |" in table2.paired(tmp_path)
     assert table2.sign_flip_p([0.5, -0.5]) == 1.0 and table2.sign_flip_p([2.0] * 5) == 2 / 32
     with pytest.raises(ValueError, match="1 to 20"):
         table2.sign_flip_p([])
