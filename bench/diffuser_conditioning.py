@@ -49,6 +49,7 @@ from flow_diagnostics import (  # noqa: E402
 )
 from pair_starts import start_views  # noqa: E402
 
+from torchrl_ftb.data import coarsen_trajectories, refine_trajectories  # noqa: E402
 from torchrl_ftb.diffusion import (  # noqa: E402
     get_preset, load_diffuser, make_diffuser, parse_overrides, train_diffuser,
 )
@@ -61,7 +62,8 @@ from torchrl_ftb.provenance import run_record, write_json  # noqa: E402
 
 def evaluate(diffuser, model, trajs, scores, ids, *, per_block: int, sampler: str, steps: int, guidance: float,
              seed: int, returns: torch.Tensor | None = None, reward_fn=None, autocast_bf16: bool = False,
-             top_block: bool = False, horizon: int | None = None, streak: int | None = None) -> dict:
+             top_block: bool = False, horizon: int | None = None, streak: int | None = None,
+             stride: int = 1) -> dict:
     """Condition-following statistics of one model state (see module docstring).
 
     ``top_block=True`` also conditions on the top block, which the pairs never use as a condition
@@ -80,8 +82,19 @@ def evaluate(diffuser, model, trajs, scores, ids, *, per_block: int, sampler: st
     idx = torch.cat(picks)
     blocks = torch.tensor(blocks)
     cond = trajs[idx]
+    full_horizon = trajs.batch_size[1]
+    if stride > 1:
+        cond = coarsen_trajectories(cond, stride)
     sample = diffuser.generate(cond, sampler=sampler, steps=steps, guidance=guidance, generator=gen,
                                autocast_bf16=autocast_bf16).to("cpu")
+    round_trip = None
+    if stride > 1:
+        sample = refine_trajectories(sample.select("observation", "action", "mask"), stride, horizon=full_horizon)
+        round_trip = refine_trajectories(cond.select("observation", "action", "mask").to("cpu"), stride,
+                                         horizon=full_horizon)
+        s_round = score_trajectories(model, round_trip).double()
+        true_round = (sample_true_return(round_trip, reward_fn, horizon=horizon, streak=streak).double()
+                      if reward_fn is not None and returns is not None else None)
     s_new = score_trajectories(model, sample).double()
     true_new = None
     if reward_fn is not None and returns is not None:
@@ -103,7 +116,13 @@ def evaluate(diffuser, model, trajs, scores, ids, *, per_block: int, sampler: st
                                    condition_true_return_max=float(returns[idx[m]].max()),
                                    sample_true_return_max=float(true_new[m].max()),
                                    samples_above_condition=float((true_new[m] > returns[idx[m]]).double().mean()))
-    per_start = start_gaps_to_conditions(sample["observation"][:, 0].float(), cond["observation"][:, 0].float(),
+        if round_trip is not None:
+            per[str(k + 1)]["condition_round_trip_score"] = float(s_round[m].mean())
+            if true_new is not None:
+                per[str(k + 1)].update(condition_round_trip_true_return=float(true_round[m].mean()),
+                                       condition_round_trip_true_return_max=float(true_round[m].max()),
+                                       samples_above_round_trip=float((true_new[m] > true_round[m]).double().mean()))
+    per_start = start_gaps_to_conditions(sample["observation"][:, 0].float(), trajs[idx]["observation"][:, 0].float(),
                                          trajs["observation"][:, 0].float())
     inner = blocks < num_blocks - 1  # the correlations: blocks that are conditions in training
     extra = {} if true_new is None else {
@@ -180,6 +199,9 @@ def main() -> None:
     parser.add_argument("--override", nargs="*", default=[], metavar="KEY=VALUE",
                         help="with --preset: model-field overrides of the fresh diffuser (YAML values), "
                              "e.g. concat_condition=true")
+    parser.add_argument("--stride", type=int, default=1,
+                        help="with --preset: the fresh diffuser models every STRIDE-th step (pairs and conditions "
+                             "coarsened, samples refined back to the data's horizon before scoring)")
     parser.add_argument("--pairs", default="blocks", choices=("blocks", "copy"),
                         help="blocks: the run's adjacent-block pairs (FTB); copy: target = condition")
     parser.add_argument("--device", default=None, help="default: cuda if available, else cpu")
@@ -191,6 +213,8 @@ def main() -> None:
         return
     if args.steps is None:
         parser.error("--steps is required with --run-dir")
+    if args.stride > 1 and args.preset is None:
+        parser.error("--stride needs --preset (a fresh diffuser on the coarsened trajectories)")
     if args.override and args.preset is None:
         parser.error("--override KEY=VALUE needs --preset (a fresh diffuser)")
     try:
@@ -217,7 +241,8 @@ def main() -> None:
 
     work = args.work_dir or run / ("conditioning_bench" + ("_copy" if args.pairs == "copy" else "")
                                    + (f"_{args.preset}" if args.preset else "")
-                                   + "".join(f"_{o.replace('=', '-')}" for o in args.override))
+                                   + "".join(f"_{o.replace('=', '-')}" for o in args.override)
+                                   + (f"_stride{args.stride}" if args.stride > 1 else ""))
     work.mkdir(parents=True, exist_ok=True)
     ckpt = work / "diffuser_last.pt"
     blocks = torch.load(run / "checkpoints" / "blocks.pt", weights_only=True)
@@ -227,10 +252,14 @@ def main() -> None:
         diffuser = load_diffuser(ckpt)
     elif args.preset is not None:
         torch.manual_seed(int(cfg.seed))  # a fresh model's initial weights, as the recipe seeds them
+        if cfg.diffuser.get("observation_structure") and args.stride > 1:
+            parser.error("--stride with observation_structure: a coarse step's stacked frame is not its "
+                         "predecessor's (the structure holds at stride 1 only)")
         if cfg.diffuser.get("observation_structure"):  # as the run's own diffuser (the recipe's rule)
             overrides = {**observation_layout(name), **overrides}
+        data = coarsen_trajectories(trajs, args.stride) if args.stride > 1 else trajs
         diffuser = make_diffuser(args.preset, obs_dim=trajs["observation"].shape[-1],
-                                 action_dim=trajs["action"].shape[-1], horizon=trajs.batch_size[1], data=trajs,
+                                 action_dim=trajs["action"].shape[-1], horizon=data.batch_size[1], data=data,
                                  **overrides)
     else:  # never touch the run's own checkpoint
         shutil.copy2(run / "checkpoints" / "diffuser" / "diffuser_last.pt", ckpt)
@@ -247,7 +276,8 @@ def main() -> None:
     else:
         # every key of trajs: observation, action, mask (+ the normalised score attached above); the run's
         # own pairing (diffuser.pair_neighbours)
-        buffer = make_block_pair_buffer(trajs, ids, batch_size=batch_size, seed=int(cfg.seed), keys=None,
+        pair_data = coarsen_trajectories(trajs, args.stride).contiguous() if args.stride > 1 else trajs
+        buffer = make_block_pair_buffer(pair_data, ids, batch_size=batch_size, seed=int(cfg.seed), keys=None,
                                         neighbours=cfg.diffuser.get("pair_neighbours"))
     tag = f"-{args.tag}" if args.tag else ""
     out = ROOT / "bench" / "results" / "diffuser_conditioning" / f"{name}-{run.name}{tag}.json"
@@ -263,7 +293,7 @@ def main() -> None:
         ev = evaluate(diffuser, model, trajs, scores, ids, per_block=args.per_block, sampler=sampler,
                       steps=int(sample_steps), guidance=float(guidance), seed=int(cfg.seed), returns=returns,
                       reward_fn=reward_fn, autocast_bf16=args.autocast_bf16, top_block=args.top_block,
-                      horizon=args.horizon, streak=args.streak)
+                      horizon=args.horizon, streak=args.streak, stride=args.stride)
         ev.update(step=step, eval_seconds=round(time.time() - t0, 1))
         record["evaluations"].append(ev)
         write_json(out, record)

@@ -56,6 +56,45 @@ def test_top_block_conditions_have_no_target_and_keep_the_other_blocks_statistic
     assert table[2].endswith("(—) |") and len(table) == 3
 
 
+def test_a_coarse_diffuser_is_conditioned_on_coarse_trajectories_and_read_at_the_datas_horizon():
+    """--stride: the diffuser sees every stride-th step; samples are refined back to the data's horizon before the
+    score model and the true reward read them, and the conditions' own round trip is reported beside them."""
+    bench = load_script(ROOT / "bench" / "diffuser_conditioning.py", "bench_diffuser_conditioning_stride")
+    data = make_toy_dataset(num_trajectories=40, horizon=16, seed=0)
+    trajs = data.select("observation", "action", "mask")
+    returns = true_return(data).double()
+    ids = torch.empty(40, dtype=torch.long)
+    ids[returns.argsort()] = torch.arange(40) // 10
+    obs_dim, act_dim = trajs["observation"].shape[-1], trajs["action"].shape[-1]
+    diffuser = make_diffuser("tiny", obs_dim=obs_dim, action_dim=act_dim, horizon=8, data=trajs[:, ::2],
+                             hidden_dim=16, cond_dim=16)
+    model = ScoreModel(obs_dim, act_dim, num_cells=16, seed=0)
+    seen = []
+    generate = diffuser.generate
+
+    def spy(cond, **kw):
+        seen.append(cond.batch_size)
+        out = generate(cond, **kw)
+        seen.append(out.batch_size)
+        return out
+
+    lengths_read = []
+
+    def reward(observation, action):
+        lengths_read.append(observation.shape[-2])
+        return toy_reward(observation, action)
+
+    diffuser.generate = spy
+    out = bench.evaluate(diffuser, model, trajs, returns, ids, per_block=3, sampler="ddim", steps=2, guidance=1.2,
+                         seed=0, returns=returns, reward_fn=reward, stride=2)
+    assert seen == [torch.Size([9, 8]), torch.Size([9, 8])]  # coarse conditions in, coarse samples out
+    assert len(lengths_read) == 18  # 9 samples and 9 round trips, read at the data's horizon: even lengths > 8
+    assert max(lengths_read) > 8 and all(n % 2 == 0 for n in lengths_read)
+    for entry in out["per_condition_block"].values():
+        assert {"condition_round_trip_score", "condition_round_trip_true_return",
+                "samples_above_round_trip"} <= set(entry)
+
+
 def test_open_loop_replay_returns_fill_only_where_the_stop_rule_ended_the_replay():
     """torchrl_ftb.analysis.replay_returns (bench/open_loop.py, the recipe's analysis.open_loop): a replay
     ended by the success streak earns its last reward to the horizon; one that ran out of actions (or hit

@@ -6,9 +6,11 @@ import torch
 from tensordict import TensorDict
 
 from torchrl_ftb.data import (
+    coarsen_trajectories,
     flat_to_trajectories,
     load_trajectories,
     pad_trajectories,
+    refine_trajectories,
     save_trajectories,
     success_streak_fired,
     success_streak_length,
@@ -152,3 +154,39 @@ def test_success_streak_length_is_the_generators_stop_rule():
     with pytest.raises(ValueError, match="differ in shape"):
         success_streak_length(success[:, :5], mask, streak=2)
 
+
+
+@pytest.mark.parametrize("stride", [1, 3, 5])
+def test_coarsen_refine_round_trip_keeps_ends_and_obeys_linear_dynamics(stride):
+    data = make_toy_dataset(num_trajectories=16, horizon=23, seed=4)
+    lengths = trajectory_lengths(data)
+    coarse = coarsen_trajectories(data.select("observation", "action", "mask"), stride)
+    assert coarse.batch_size[1] == -(-23 // stride)
+    assert torch.equal(coarse["mask"].sum(-1), -(-lengths // stride))  # ceil(n / stride) valid steps
+    fine = refine_trajectories(coarse, stride, horizon=23)
+    n_fine = trajectory_lengths(fine)
+    assert bool((n_fine >= lengths).all()) and bool((n_fine < lengths + stride).all())
+    rows = torch.arange(16)
+    first, last = data["observation"][:, 0], data["observation"][rows, lengths - 1]
+    assert torch.equal(fine["observation"][:, 0], first)
+    # the last state is reached at (m - 1) * stride and held to the end
+    m = coarse["mask"].sum(-1)
+    assert torch.allclose(fine["observation"][rows, (m - 1) * stride], last)
+    assert torch.allclose(fine["observation"][rows, n_fine - 1], last)
+    # positions integrate actions (p' = p + 0.1 a): the window-mean action held along the interpolated path
+    # reproduces every full window exactly; stride 1 is the identity on valid steps
+    step = fine["observation"][:, 1:, :2] - fine["observation"][:, :-1, :2]
+    t = torch.arange(22)
+    interior = t.unsqueeze(0) < ((m - 2).clamp(min=0) * stride).unsqueeze(-1)
+    assert torch.allclose(step[interior], 0.1 * fine["action"][:, :-1][interior], atol=1e-5)
+    if stride == 1:
+        valid = data["mask"]
+        assert torch.equal(fine["observation"][valid], data["observation"][valid])
+        assert torch.equal(fine["action"][valid], data["action"][valid])
+
+
+def test_coarsen_refine_reject_a_bad_stride(toy_data):
+    with pytest.raises(ValueError, match="stride must be >= 1"):
+        coarsen_trajectories(toy_data, 0)
+    with pytest.raises(ValueError, match="stride must be >= 1"):
+        refine_trajectories(toy_data.select("observation", "mask"), 0, horizon=8)

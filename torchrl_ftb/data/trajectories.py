@@ -39,6 +39,8 @@ __all__ = [
     "flat_to_trajectories",
     "trajectories_to_flat",
     "pad_trajectories",
+    "coarsen_trajectories",
+    "refine_trajectories",
     "read_memmap_folder",
     "save_trajectories",
     "load_trajectories",
@@ -294,6 +296,114 @@ def pad_trajectories(trajs: Sequence[TensorDictBase], *, horizon: int | None = N
         p.set("mask", torch.arange(horizon) < n)
         padded.append(p)
     return torch.stack(padded, 0).contiguous()
+
+
+def coarsen_trajectories(td: TensorDictBase, stride: int, *, average: Sequence[str] = ("action",)) -> TensorDict:
+    """Every ``stride``-th step of an ``[N, H]`` batch, and each trajectory's last step: ``[N, ceil(H / stride)]``.
+
+    A trajectory of length ``n`` keeps ``m = ceil(n / stride)`` valid steps (its mask stays a prefix): steps
+    ``0, stride, ..., (m - 2) * stride`` and its last step ``n - 1`` in place of ``(m - 1) * stride``. The last
+    step is kept because an episode's end is what it earned: a Meta-World episode ends at its success, and a round
+    trip that dropped it would drop the success. The keys in ``average`` (default: the action) are the mean over
+    the steps from one kept step to the next (the last kept step: its own value): the net push that moves the
+    state from one kept step to the next, which is what a held action of :func:`refine_trajectories` has to
+    reproduce along the interpolated path (a single noisy action picked from the window would not).
+
+    Temporal coarsening shortens what a diffuser has to model by ``stride`` (FTB's authors name compression as
+    the way to long horizons, §6); :func:`refine_trajectories` maps back.
+
+    Example:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> td = TensorDict({"observation": torch.arange(8.0).reshape(1, 8, 1), "action": torch.ones(1, 8, 1),
+        ...                  "mask": torch.arange(8).reshape(1, 8) < 6}, batch_size=[1, 8])
+        >>> coarse = coarsen_trajectories(td, 3)
+        >>> coarse["observation"][0, :, 0].tolist(), coarse["mask"][0].tolist()
+        ([0.0, 5.0, 6.0], [True, True, False])
+        >>> refine_trajectories(coarse, 3, horizon=8)["mask"].sum().item()  # never shorter than the original 6
+        6
+    """
+    stride = int(stride)
+    if stride < 1:
+        raise ValueError(f"coarsen_trajectories: stride must be >= 1, got {stride}")
+    if stride == 1:  # the identity (the window means below are exact only up to float rounding)
+        return td.clone()
+    mask = td.get("mask").bool()
+    n, horizon = mask.shape
+    lengths = mask.sum(-1, keepdim=True)  # [N, 1]
+    times = torch.arange(0, horizon, stride, device=mask.device).unsqueeze(0).expand(n, -1)  # [N, L]
+    valid = times < lengths
+    is_last = valid & (times + stride >= lengths)
+    times = torch.where(is_last, lengths - 1, times)
+
+    ends = torch.where(valid & ~is_last, torch.cat([times[:, 1:], times[:, -1:]], 1), times + 1)  # window ends
+
+    def at(value: torch.Tensor, where: torch.Tensor) -> torch.Tensor:
+        idx = where.reshape(*where.shape, *([1] * (value.dim() - 2))).expand(n, where.shape[1], *value.shape[2:])
+        return value.gather(1, idx)
+
+    out = td.exclude("mask").apply(lambda value: at(value, times), batch_size=[n, times.shape[1]])
+    for key in average:
+        value = td.get(key)
+        cum = torch.cat([torch.zeros_like(value[:, :1]), value.cumsum(1)], 1)  # cum[:, t] = sum of steps < t
+        width = (ends - times).clamp(min=1).reshape(*times.shape, *([1] * (value.dim() - 2)))
+        out.set(key, (at(cum, ends.clamp(max=horizon)) - at(cum, times)) / width)
+    out.set("mask", valid)
+    return out
+
+
+def refine_trajectories(td: TensorDictBase, stride: int, *, horizon: int,
+                        interpolate: Sequence[str] = ("observation",)) -> TensorDict:
+    """Back from a coarsened ``[N, L]`` batch to ``[N, horizon]``: the inverse of :func:`coarsen_trajectories`
+    up to what the dropped steps held.
+
+    Coarse step ``j`` sits at time ``j * stride``. The keys in ``interpolate`` are interpolated linearly between
+    consecutive valid coarse steps; every other key of ``td`` (actions, flags) is held from the coarse step at or
+    before each time. A trajectory with ``m`` valid coarse steps reaches its last state at ``(m - 1) * stride`` and
+    holds it to length ``m * stride`` (capped at ``horizon``). A round trip of a length-``n`` trajectory keeps its
+    first and last states; its last segment runs up to ``stride - 1`` steps faster and its end state is held up to
+    ``stride - 1`` steps longer, so it is never shorter than ``n`` (a shorter one would cut a success streak that
+    ended the episode: :func:`torchrl_ftb.data.success_streak_fired`).
+
+    Example:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> coarse = TensorDict({"observation": torch.tensor([[[0.0], [3.0], [9.0]]]),
+        ...                      "mask": torch.tensor([[True, True, False]])}, batch_size=[1, 3])
+        >>> fine = refine_trajectories(coarse, 3, horizon=6)
+        >>> fine["observation"][0, :, 0].tolist(), fine["mask"][0].tolist()
+        ([0.0, 1.0, 2.0, 3.0, 3.0, 3.0], [True, True, True, True, True, True])
+    """
+    stride = int(stride)
+    if stride < 1:
+        raise ValueError(f"refine_trajectories: stride must be >= 1, got {stride}")
+    mask = td.get("mask").bool()
+    n, coarse_len = mask.shape
+    valid = mask.sum(-1)  # [N] valid coarse steps (a prefix)
+    t = torch.arange(horizon, device=mask.device)
+    last = (valid - 1).clamp(min=0).unsqueeze(-1)  # [N, 1] index of the last valid coarse step
+    j = (t // stride).unsqueeze(0).expand(n, horizon).clamp(max=coarse_len - 1)
+    j = torch.minimum(j, last)  # past the end: hold the last valid step
+    j_next = torch.minimum(j + 1, last)
+    frac = ((t % stride).float() / stride).unsqueeze(0).expand(n, horizon)
+    frac = torch.where(j_next > j, frac, torch.zeros_like(frac))
+    lengths = (valid * stride).clamp(max=horizon)
+    out = {}
+    for key in td.keys():
+        if key == "mask":
+            continue
+        value = td.get(key)
+        if not isinstance(value, torch.Tensor):
+            raise ValueError(f"refine_trajectories: key {key!r} is nested; refine leaf tensors only")
+        idx = j.reshape(n, horizon, *([1] * (value.dim() - 2))).expand(n, horizon, *value.shape[2:])
+        held = value.gather(1, idx)
+        if key in interpolate:
+            nxt = value.gather(1, j_next.reshape(idx.shape[:2] + (1,) * (value.dim() - 2)).expand_as(idx))
+            w = frac.reshape(n, horizon, *([1] * (value.dim() - 2))).to(value.dtype)
+            held = held + w * (nxt - held)
+        out[key] = held
+    out["mask"] = t.unsqueeze(0) < lengths.unsqueeze(-1)
+    return TensorDict(out, batch_size=[n, horizon], device=td.device)
 
 
 @contextlib.contextmanager
