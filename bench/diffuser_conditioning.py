@@ -155,7 +155,8 @@ def _num(value: float | None) -> str:
 
 
 def summarize(paths: list[Path]) -> str:
-    """Markdown table of saved results: one row per (file, evaluation)."""
+    """Markdown table of saved results: one row per (file, evaluation). ``--stride`` files also give each block's
+    conditions' own round trip (coarsened and refined), the level a coarse model's samples are read against."""
     rows = []
     for path in paths:
         rec = json.loads(path.read_text())
@@ -172,7 +173,9 @@ def summarize(paths: list[Path]) -> str:
                         + ("—" if true_rho is None else f"{true_rho:+.2f}") + " | "
                         + " | ".join(f"{v['sample_score']:.0f} ({_num(v['target_block_score'])})"
                                      + (f"; {v['sample_true_return']:.0f} ({_num(v['target_block_true_return'])})"
-                                        if "sample_true_return" in v else "") for v in per.values())
+                                        if "sample_true_return" in v else "")
+                                     + (f"; conditions' round trip {v['condition_round_trip_true_return']:.0f}"
+                                        if "condition_round_trip_true_return" in v else "") for v in per.values())
                         + " |")
     return "\n".join(rows)
 

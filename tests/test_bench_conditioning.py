@@ -56,7 +56,7 @@ def test_top_block_conditions_have_no_target_and_keep_the_other_blocks_statistic
     assert table[2].endswith("(—) |") and len(table) == 3
 
 
-def test_a_coarse_diffuser_is_conditioned_on_coarse_trajectories_and_read_at_the_datas_horizon():
+def test_a_coarse_diffuser_is_conditioned_on_coarse_trajectories_and_read_at_the_datas_horizon(tmp_path):
     """--stride: the diffuser sees every stride-th step; samples are refined back to the data's horizon before the
     score model and the true reward read them, and the conditions' own round trip is reported beside them."""
     bench = load_script(ROOT / "bench" / "diffuser_conditioning.py", "bench_diffuser_conditioning_stride")
@@ -93,6 +93,10 @@ def test_a_coarse_diffuser_is_conditioned_on_coarse_trajectories_and_read_at_the
     for entry in out["per_condition_block"].values():
         assert {"condition_round_trip_score", "condition_round_trip_true_return",
                 "samples_above_round_trip"} <= set(entry)
+    path = tmp_path / "toy-stride.json"
+    path.write_text(json.dumps({"evaluations": [{**out, "step": 0}]}))
+    row = bench.summarize([path]).splitlines()[2]
+    assert row.count("conditions' round trip") == 3
 
 
 def test_open_loop_replay_returns_fill_only_where_the_stop_rule_ended_the_replay():
