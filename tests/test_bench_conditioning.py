@@ -215,3 +215,14 @@ def test_pair_starts_measures_closer_starts_for_start_matched_pairs():
     # m as large as a block: the same pairs as uniform ones, in distribution
     everyone = bench.start_gaps(starts, ids, neighbours=20, **kw)
     assert everyone["z"] == pytest.approx(uniform["z"], rel=0.05)
+
+
+def test_coarsen_round_trip_reads_returns_per_block():
+    bench = load_script(ROOT / "bench" / "coarsen_round_trip.py", "bench_coarsen_round_trip")
+    before = torch.tensor([1.0, 3.0, 10.0, 30.0], dtype=torch.float64)
+    after = torch.tensor([1.0, 1.0, 10.0, 20.0], dtype=torch.float64)
+    out = bench.per_block(before, after, torch.tensor([0, 0, 1, 1]))
+    assert list(out) == ["1", "2", "all"]
+    assert out["1"]["before"] == 2.0 and out["1"]["after"] == 1.0 and out["1"]["kept"] == 0.5
+    assert out["2"]["max_before"] == 30.0 and out["2"]["max_after"] == 20.0 and out["2"]["n"] == 2
+    assert out["all"]["kept"] == pytest.approx(32.0 / 44.0)
