@@ -17,7 +17,10 @@ condition_score`` near 1), whatever the blocks. ``--top-block`` also samples fro
 top block (the flow's top-k come from there; the pairs never use it as a condition), with the max
 true return of conditions and samples and the share of samples above their own condition.
 ``--horizon 500 --streak 25`` scores the true returns (data and samples) with the stop-rule fill
-after the stop-rule cut, the definition of the flow's ``true_return_filled_stop_rule_*`` statistics. JSON to
+after the stop-rule cut, the definition of the flow's ``true_return_filled_stop_rule_*`` statistics. ``--preset P
+--stride S`` trains the fresh diffuser on every S-th step (:func:`~torchrl_ftb.data.coarsen_trajectories`) and reads
+its samples at the data's horizon (:func:`~torchrl_ftb.data.refine_trajectories`), beside each block's conditions'
+own round trip (``bench/coarsen_round_trip.py`` measures what a round trip keeps). JSON to
 ``bench/results/diffuser_conditioning/<task>-<run>-<tag>.json`` after every evaluation
 (partial results survive a kill). ``--device cuda --autocast-bf16 --max-minutes M`` is the
 GPU check (paper preset) that decides whether our CPU-budget findings are about the budget.
@@ -122,8 +125,8 @@ def evaluate(diffuser, model, trajs, scores, ids, *, per_block: int, sampler: st
                 per[str(k + 1)].update(condition_round_trip_true_return=float(true_round[m].mean()),
                                        condition_round_trip_true_return_max=float(true_round[m].max()),
                                        samples_above_round_trip=float((true_new[m] > true_round[m]).double().mean()))
-    per_start = start_gaps_to_conditions(sample["observation"][:, 0].float(), trajs[idx]["observation"][:, 0].float(),
-                                         trajs["observation"][:, 0].float())
+    per_start = start_gaps_to_conditions(sample["observation"][:, 0].float(),
+                                         trajs[idx]["observation"][:, 0].float(), trajs["observation"][:, 0].float())
     inner = blocks < num_blocks - 1  # the correlations: blocks that are conditions in training
     extra = {} if true_new is None else {
         "spearman_sample_true_return_vs_condition_block": spearman(blocks[inner].double(), true_new[inner])}
@@ -253,6 +256,9 @@ def main() -> None:
     model = load_score_model(run / "checkpoints" / "score_model.pt")
     if ckpt.exists():
         diffuser = load_diffuser(ckpt)
+        if args.preset is not None and diffuser.horizon != -(-trajs.batch_size[1] // args.stride):
+            parser.error(f"{ckpt}: a diffuser of horizon {diffuser.horizon}, not this --stride {args.stride}'s "
+                         f"{-(-trajs.batch_size[1] // args.stride)}; use another --work-dir")
     elif args.preset is not None:
         torch.manual_seed(int(cfg.seed))  # a fresh model's initial weights, as the recipe seeds them
         if cfg.diffuser.get("observation_structure") and args.stride > 1:
