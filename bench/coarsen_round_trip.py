@@ -51,7 +51,7 @@ def main() -> None:
     args = parser.parse_args()
     if args.streak is not None and args.horizon is None:
         parser.error("--streak needs --horizon (the stop-rule cut comes before the fill)")
-    cfg, trajs, _ = load_run(args.run_dir, with_returns=True)
+    cfg, trajs = load_run(args.run_dir)
     name = str(cfg.env.name)
     reward_fn = true_reward_fn(name, with_success=args.streak is not None)
     ids = torch.load(args.run_dir / "checkpoints" / "blocks.pt", weights_only=True)["block_ids"]

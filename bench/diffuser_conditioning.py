@@ -254,11 +254,13 @@ def main() -> None:
     blocks = torch.load(run / "checkpoints" / "blocks.pt", weights_only=True)
     scores, ids = blocks["scores"].double(), blocks["block_ids"]
     model = load_score_model(run / "checkpoints" / "score_model.pt")
+    # what the diffuser models: the trajectories, or every stride-th step of them (model, pairs, conditions)
+    coarse = coarsen_trajectories(trajs, args.stride).contiguous() if args.stride > 1 else trajs
     if ckpt.exists():
         diffuser = load_diffuser(ckpt)
-        if args.preset is not None and diffuser.horizon != -(-trajs.batch_size[1] // args.stride):
+        if args.preset is not None and diffuser.horizon != coarse.batch_size[1]:
             parser.error(f"{ckpt}: a diffuser of horizon {diffuser.horizon}, not this --stride {args.stride}'s "
-                         f"{-(-trajs.batch_size[1] // args.stride)}; use another --work-dir")
+                         f"{coarse.batch_size[1]}; use another --work-dir")
     elif args.preset is not None:
         torch.manual_seed(int(cfg.seed))  # a fresh model's initial weights, as the recipe seeds them
         if cfg.diffuser.get("observation_structure") and args.stride > 1:
@@ -266,27 +268,25 @@ def main() -> None:
                          "predecessor's (the structure holds at stride 1 only)")
         if cfg.diffuser.get("observation_structure"):  # as the run's own diffuser (the recipe's rule)
             overrides = {**observation_layout(name), **overrides}
-        data = coarsen_trajectories(trajs, args.stride) if args.stride > 1 else trajs
         diffuser = make_diffuser(args.preset, obs_dim=trajs["observation"].shape[-1],
-                                 action_dim=trajs["action"].shape[-1], horizon=data.batch_size[1], data=data,
+                                 action_dim=trajs["action"].shape[-1], horizon=coarse.batch_size[1], data=coarse,
                                  **overrides)
     else:  # never touch the run's own checkpoint
         shutil.copy2(run / "checkpoints" / "diffuser" / "diffuser_last.pt", ckpt)
         diffuser = load_diffuser(ckpt)
     diffuser.to(device)
     if diffuser.score_condition:  # conditions (evaluation, copy pairs) carry their normalised score
-        trajs = with_normalized_scores(trajs, scores)
+        trajs, coarse = with_normalized_scores(trajs, scores), with_normalized_scores(coarse, scores)
     if args.pairs == "copy":
         copy_gen = torch.Generator().manual_seed(int(cfg.seed))
 
         def buffer() -> TensorDict:  # a fresh draw after a resume: a diagnostic, not a training recipe
-            picked = trajs[torch.randint(0, trajs.batch_size[0], (batch_size,), generator=copy_gen)]
+            picked = coarse[torch.randint(0, coarse.batch_size[0], (batch_size,), generator=copy_gen)]
             return TensorDict({"condition": picked, "target": picked}, batch_size=[batch_size])
     else:
         # every key of trajs: observation, action, mask (+ the normalised score attached above); the run's
         # own pairing (diffuser.pair_neighbours)
-        pair_data = coarsen_trajectories(trajs, args.stride).contiguous() if args.stride > 1 else trajs
-        buffer = make_block_pair_buffer(pair_data, ids, batch_size=batch_size, seed=int(cfg.seed), keys=None,
+        buffer = make_block_pair_buffer(coarse, ids, batch_size=batch_size, seed=int(cfg.seed), keys=None,
                                         neighbours=cfg.diffuser.get("pair_neighbours"))
     tag = f"-{args.tag}" if args.tag else ""
     out = ROOT / "bench" / "results" / "diffuser_conditioning" / f"{name}-{run.name}{tag}.json"

@@ -16,17 +16,23 @@ ROOT = Path(__file__).resolve().parents[1]
 pytestmark = [pytest.mark.filterwarnings("ignore::UserWarning"), pytest.mark.usefixtures("one_thread")]
 
 
-def test_top_block_conditions_have_no_target_and_keep_the_other_blocks_statistics(tmp_path):
-    bench = load_script(ROOT / "bench" / "diffuser_conditioning.py", "bench_diffuser_conditioning")
+def _toy_run(stride: int = 1):
+    """A toy dataset of 40 trajectories (H = 16) in four ascending blocks of ten by true return, a tiny diffuser
+    of its every ``stride``-th step and an untrained score model: what ``evaluate`` reads of a run."""
     data = make_toy_dataset(num_trajectories=40, horizon=16, seed=0)
     trajs = data.select("observation", "action", "mask")
     returns = true_return(data).double()
     ids = torch.empty(40, dtype=torch.long)
-    ids[returns.argsort()] = torch.arange(40) // 10  # four ascending blocks of ten
+    ids[returns.argsort()] = torch.arange(40) // 10
     obs_dim, act_dim = trajs["observation"].shape[-1], trajs["action"].shape[-1]
-    diffuser = make_diffuser("tiny", obs_dim=obs_dim, action_dim=act_dim, horizon=16, data=trajs,
-                             hidden_dim=16, cond_dim=16)
-    model = ScoreModel(obs_dim, act_dim, num_cells=16, seed=0)
+    diffuser = make_diffuser("tiny", obs_dim=obs_dim, action_dim=act_dim, horizon=16 // stride,
+                             data=trajs[:, ::stride], hidden_dim=16, cond_dim=16)
+    return trajs, returns, ids, diffuser, ScoreModel(obs_dim, act_dim, num_cells=16, seed=0)
+
+
+def test_top_block_conditions_have_no_target_and_keep_the_other_blocks_statistics(tmp_path):
+    bench = load_script(ROOT / "bench" / "diffuser_conditioning.py", "bench_diffuser_conditioning")
+    trajs, returns, ids, diffuser, model = _toy_run()
     kw = dict(per_block=3, sampler="ddim", steps=2, guidance=1.2, seed=0, returns=returns, reward_fn=toy_reward)
     base = bench.evaluate(diffuser, model, trajs, returns, ids, **kw)
     top = bench.evaluate(diffuser, model, trajs, returns, ids, top_block=True, **kw)
@@ -60,15 +66,7 @@ def test_a_coarse_diffuser_is_conditioned_on_coarse_trajectories_and_read_at_the
     """--stride: the diffuser sees every stride-th step; samples are refined back to the data's horizon before the
     score model and the true reward read them, and the conditions' own round trip is reported beside them."""
     bench = load_script(ROOT / "bench" / "diffuser_conditioning.py", "bench_diffuser_conditioning_stride")
-    data = make_toy_dataset(num_trajectories=40, horizon=16, seed=0)
-    trajs = data.select("observation", "action", "mask")
-    returns = true_return(data).double()
-    ids = torch.empty(40, dtype=torch.long)
-    ids[returns.argsort()] = torch.arange(40) // 10
-    obs_dim, act_dim = trajs["observation"].shape[-1], trajs["action"].shape[-1]
-    diffuser = make_diffuser("tiny", obs_dim=obs_dim, action_dim=act_dim, horizon=8, data=trajs[:, ::2],
-                             hidden_dim=16, cond_dim=16)
-    model = ScoreModel(obs_dim, act_dim, num_cells=16, seed=0)
+    trajs, returns, ids, diffuser, model = _toy_run(stride=2)
     seen = []
     generate = diffuser.generate
 

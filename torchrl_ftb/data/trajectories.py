@@ -298,6 +298,12 @@ def pad_trajectories(trajs: Sequence[TensorDictBase], *, horizon: int | None = N
     return torch.stack(padded, 0).contiguous()
 
 
+def _at_steps(value: torch.Tensor, steps: torch.Tensor) -> torch.Tensor:
+    """``value [N, H, ...]`` at per-trajectory step indices ``steps [N, L]``: ``[N, L, ...]``."""
+    shape = (*steps.shape, *([1] * (value.dim() - 2)))
+    return value.gather(1, steps.reshape(shape).expand(*steps.shape, *value.shape[2:]))
+
+
 def coarsen_trajectories(td: TensorDictBase, stride: int, *, average: Sequence[str] = ("action",)) -> TensorDict:
     """Every ``stride``-th step of an ``[N, H]`` batch, and each trajectory's last step: ``[N, ceil(H / stride)]``.
 
@@ -337,17 +343,12 @@ def coarsen_trajectories(td: TensorDictBase, stride: int, *, average: Sequence[s
     times = torch.where(is_last, lengths - 1, times)
 
     ends = torch.where(valid & ~is_last, torch.cat([times[:, 1:], times[:, -1:]], 1), times + 1)  # window ends
-
-    def at(value: torch.Tensor, where: torch.Tensor) -> torch.Tensor:
-        idx = where.reshape(*where.shape, *([1] * (value.dim() - 2))).expand(n, where.shape[1], *value.shape[2:])
-        return value.gather(1, idx)
-
-    out = td.exclude("mask").apply(lambda value: at(value, times), batch_size=[n, times.shape[1]])
+    out = td.exclude("mask").apply(lambda value: _at_steps(value, times), batch_size=[n, times.shape[1]])
     for key in average:
         value = td.get(key)
         cum = torch.cat([torch.zeros_like(value[:, :1]), value.cumsum(1)], 1)  # cum[:, t] = sum of steps < t
         width = (ends - times).clamp(min=1).reshape(*times.shape, *([1] * (value.dim() - 2)))
-        out.set(key, (at(cum, ends.clamp(max=horizon)) - at(cum, times)) / width)
+        out.set(key, (_at_steps(cum, ends.clamp(max=horizon)) - _at_steps(cum, times)) / width)
     out.set("mask", valid)
     return out
 
@@ -395,12 +396,10 @@ def refine_trajectories(td: TensorDictBase, stride: int, *, horizon: int,
         value = td.get(key)
         if not isinstance(value, torch.Tensor):
             raise ValueError(f"refine_trajectories: key {key!r} is nested; refine leaf tensors only")
-        idx = j.reshape(n, horizon, *([1] * (value.dim() - 2))).expand(n, horizon, *value.shape[2:])
-        held = value.gather(1, idx)
+        held = _at_steps(value, j)
         if key in interpolate:
-            nxt = value.gather(1, j_next.reshape(idx.shape[:2] + (1,) * (value.dim() - 2)).expand_as(idx))
             w = frac.reshape(n, horizon, *([1] * (value.dim() - 2))).to(value.dtype)
-            held = held + w * (nxt - held)
+            held = held + w * (_at_steps(value, j_next) - held)
         out[key] = held
     out["mask"] = t.unsqueeze(0) < lengths.unsqueeze(-1)
     return TensorDict(out, batch_size=[n, horizon], device=td.device)
