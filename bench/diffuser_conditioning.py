@@ -34,6 +34,7 @@ Usage::
 """
 from __future__ import annotations
 
+import argparse
 import json
 import shutil
 import sys
@@ -153,6 +154,17 @@ def start_gaps_to_conditions(sample_starts: torch.Tensor, condition_starts: torc
     return out
 
 
+def _weights(text: str) -> list[float]:
+    """``--pair-weights`` value: comma-separated non-negative numbers."""
+    try:
+        weights = [float(w) for w in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected comma-separated numbers, e.g. 0,0,1,1") from None
+    if any(w < 0 for w in weights) or sum(weights) <= 0:
+        raise argparse.ArgumentTypeError(f"{text!r}: weights must be non-negative, not all zero")
+    return weights
+
+
 def _num(value: float | None) -> str:
     return "—" if value is None else f"{value:.0f}"  # the top block has no target block
 
@@ -210,6 +222,9 @@ def main() -> None:
                              "coarsened, samples refined back to the data's horizon before scoring)")
     parser.add_argument("--pairs", default="blocks", choices=("blocks", "copy"),
                         help="blocks: the run's adjacent-block pairs (FTB); copy: target = condition")
+    parser.add_argument("--pair-weights", type=_weights, default=None, metavar="W0,W1,...",
+                        help="with --preset and block pairs: weights of the transitions k -> k+1 (K - 1 of them, "
+                             "e.g. 0,0,1,1: only pairs into the top two of 5 blocks); default uniform (the paper's)")
     parser.add_argument("--device", default=None, help="default: cuda if available, else cpu")
     parser.add_argument("--autocast-bf16", action="store_true", help="bf16 autocast in training and sampling")
     parser.add_argument("--max-minutes", type=float, default=None,
@@ -223,6 +238,8 @@ def main() -> None:
         parser.error("--stride needs --preset (a fresh diffuser on the coarsened trajectories)")
     if args.override and args.preset is None:
         parser.error("--override KEY=VALUE needs --preset (a fresh diffuser)")
+    if args.pair_weights is not None and (args.preset is None or args.pairs != "blocks"):
+        parser.error("--pair-weights needs --preset and block pairs (a fresh diffuser on reweighted pairs)")
     try:
         overrides = parse_overrides(args.override)
     except ValueError as err:
@@ -248,7 +265,8 @@ def main() -> None:
     work = args.work_dir or run / ("conditioning_bench" + ("_copy" if args.pairs == "copy" else "")
                                    + (f"_{args.preset}" if args.preset else "")
                                    + "".join(f"_{o.replace('=', '-')}" for o in args.override)
-                                   + (f"_stride{args.stride}" if args.stride > 1 else ""))
+                                   + (f"_stride{args.stride}" if args.stride > 1 else "")
+                                   + ("_w" + "-".join(f"{w:g}" for w in args.pair_weights) if args.pair_weights else ""))
     work.mkdir(parents=True, exist_ok=True)
     ckpt = work / "diffuser_last.pt"
     blocks = torch.load(run / "checkpoints" / "blocks.pt", weights_only=True)
@@ -286,9 +304,21 @@ def main() -> None:
     else:
         # every key of trajs: observation, action, mask (+ the normalised score attached above); the run's
         # own pairing (diffuser.pair_neighbours)
-        buffer = make_block_pair_buffer(coarse, ids, batch_size=batch_size, seed=int(cfg.seed), keys=None,
-                                        neighbours=cfg.diffuser.get("pair_neighbours"))
+        try:
+            buffer = make_block_pair_buffer(coarse, ids, batch_size=batch_size, seed=int(cfg.seed), keys=None,
+                                            neighbours=cfg.diffuser.get("pair_neighbours"),
+                                            block_weights=args.pair_weights)
+        except ValueError as err:  # e.g. --pair-weights of another block count than the run's
+            parser.error(f"{run / 'checkpoints' / 'blocks.pt'}: {err}")
     tag = f"-{args.tag}" if args.tag else ""
+    # the pairs' transition weights travel with the work dir's checkpoint (a resume must not change them)
+    weights_file = work / "pair_weights.json"
+    trained_on = json.loads(weights_file.read_text())["pair_weights"] if weights_file.exists() else None
+    if trained_on != args.pair_weights and (weights_file.exists() or ckpt.exists()):
+        parser.error(f"{work}: its diffuser trained on pair weights {trained_on}, not {args.pair_weights}; "
+                     "use another --work-dir")
+    if args.pair_weights is not None:
+        write_json(weights_file, {"pair_weights": args.pair_weights})
     out = ROOT / "bench" / "results" / "diffuser_conditioning" / f"{name}-{run.name}{tag}.json"
     record = {**run_record(config={**vars(args), "run_dir": str(run), "sampler": sampler,
                                    "sample_steps": int(sample_steps), "guidance": float(guidance),

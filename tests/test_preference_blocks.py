@@ -142,6 +142,27 @@ def test_neighbour_pairs_stay_adjacent_and_start_nearest(toy):
         BlockPairSampler(blocks, neighbours=2, starts=starts[:5])
 
 
+def test_block_weights_choose_the_transitions(toy):
+    """``block_weights``: transitions drawn in proportion to their weight; zero-weight ones never; checked input."""
+    blocks = torch.arange(40) % 5
+    batch = make_block_pair_buffer(toy, blocks, batch_size=4000, seed=0, block_weights=[0, 0, 1, 3]).sample()
+    i0, i1 = batch["index"].unbind(-1)
+    counts = torch.bincount(batch["block"], minlength=4)
+    assert counts[:2].tolist() == [0, 0] and 2.5 < counts[3] / counts[2] < 3.5  # 1 : 3
+    assert bool((blocks[i0] == batch["block"]).all()) and bool((blocks[i1] == batch["block"] + 1).all())
+    # with neighbours too; seeded; the weights survive a state_dict round trip
+    starts = toy["observation"][:, 0]
+    near = BlockPairSampler(blocks, neighbours=2, starts=starts, block_weights=[1, 0, 0, 0])
+    copy = BlockPairSampler(blocks)
+    copy.load_state_dict(near.state_dict())
+    assert torch.equal(copy.block_weights, torch.tensor([1.0, 0.0, 0.0, 0.0]))
+    pair = make_block_pair_buffer(toy, blocks, batch_size=64, seed=3, neighbours=2, block_weights=[1, 0, 0, 0])
+    assert bool((pair.sample()["block"] == 0).all())
+    for bad in ([1, 1], [0, 0, 0, 0], [1, -1, 1, 1], [1, float("nan"), 1, 1]):
+        with pytest.raises(ValueError, match="block_weights must be 4"):
+            BlockPairSampler(blocks, block_weights=bad)
+
+
 # --------------------------------------------------------------------------- labelled pairs
 def test_labeled_pair_buffer_orders_worse_to_better_and_skips_ties(toy):
     ret = toy["next", "reward"].squeeze(-1).sum(-1)

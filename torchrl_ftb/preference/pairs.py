@@ -65,6 +65,17 @@ def standardized_starts(starts: torch.Tensor, *, reference: torch.Tensor | None 
     return (starts - reference.mean(0)) / torch.where(std > 1e-8, std, torch.ones_like(std))
 
 
+def _transition_weights(weights: Sequence[float] | torch.Tensor | None, num_blocks: int) -> torch.Tensor | None:
+    """``K - 1`` transition weights, checked and normalised to probabilities (``None`` stays ``None``)."""
+    if weights is None:
+        return None
+    w = torch.as_tensor(weights, dtype=torch.float64).flatten()
+    if w.numel() != num_blocks - 1 or not bool(torch.isfinite(w).all()) or bool((w < 0).any()) or float(w.sum()) <= 0:
+        raise ValueError(f"BlockPairSampler: block_weights must be {num_blocks - 1} finite non-negative weights "
+                         f"(one per transition k -> k+1 of {num_blocks} blocks), not all zero; got {w.tolist()}")
+    return (w / w.sum()).float()
+
+
 class BlockPairSampler(Sampler):
     """Samples index pairs ``(i0, i1)`` with ``i0 ~ U(B_k)``, ``i1 ~ U(B_{k+1})``, ``k ~ U{0..K-2}``.
 
@@ -78,6 +89,10 @@ class BlockPairSampler(Sampler):
     trajectory *from the same situation*" instead of "any better trajectory", which is what a flow
     step asks of a sample conditioned on one top-k trajectory.
 
+    With ``block_weights`` (not the paper's), the transition ``k -> k+1`` is drawn with probability
+    proportional to ``block_weights[k]`` instead of uniformly: e.g. ``[0, 0, 1, 1]`` with ``K = 5``
+    teaches only the transitions into the two top blocks, the ones a flow from the top-k asks for.
+
     Args:
         block_ids: ``int64 [N]`` block of each stored trajectory (from :func:`make_blocks`),
             contiguous ids ``0..K-1`` with ``K >= 2``, every block non-empty.
@@ -86,6 +101,8 @@ class BlockPairSampler(Sampler):
         neighbours: ``m >= 1``: pair each ``i0`` only with its ``m`` nearest next-block trajectories
             (all of them when the block is smaller). ``None`` (default): uniform, Eq. 5.
         starts: ``[N, D]`` what "near" compares (needed with ``neighbours``).
+        block_weights: ``K - 1`` non-negative weights of the transitions ``k -> k+1`` (not all zero).
+            ``None`` (default): uniform, Eq. 5.
 
     Returns (from :meth:`sample`):
         ``index`` ``[B, 2]`` and info ``{"block": k [B]}``.
@@ -100,7 +117,8 @@ class BlockPairSampler(Sampler):
     """
 
     def __init__(self, block_ids: torch.Tensor, *, neighbours: int | None = None,
-                 starts: torch.Tensor | None = None) -> None:
+                 starts: torch.Tensor | None = None,
+                 block_weights: Sequence[float] | torch.Tensor | None = None) -> None:
         block_ids = torch.as_tensor(block_ids)
         if block_ids.ndim != 1 or block_ids.dtype not in (torch.int64, torch.int32):
             raise ValueError(f"BlockPairSampler: block_ids must be a 1-D integer tensor, got {block_ids.dtype} {list(block_ids.shape)}")
@@ -117,6 +135,7 @@ class BlockPairSampler(Sampler):
         self._counts = counts
         self._offsets = torch.cumsum(counts, 0) - counts
         self._members = torch.argsort(block_ids, stable=True)  # trajectories grouped by block
+        self.block_weights = _transition_weights(block_weights, self.num_blocks)
         self.neighbours = None if neighbours is None else int(neighbours)
         self.starts = None
         if self.neighbours is not None:
@@ -158,7 +177,10 @@ class BlockPairSampler(Sampler):
                 f"BlockPairSampler: storage holds {len(storage)} trajectories but block_ids has "
                 f"{self.block_ids.numel()} entries"
             )
-        k = torch.randint(0, self.num_blocks - 1, (batch_size,), generator=self._rng)
+        if self.block_weights is None:
+            k = torch.randint(0, self.num_blocks - 1, (batch_size,), generator=self._rng)
+        else:
+            k = torch.multinomial(self.block_weights, batch_size, replacement=True, generator=self._rng)
         i0 = self._draw(k)
         if self.neighbour_table is None:
             i1 = self._draw(k + 1)
@@ -178,14 +200,17 @@ class BlockPairSampler(Sampler):
         pass
 
     def state_dict(self) -> dict[str, Any]:
-        return {"block_ids": self.block_ids, "neighbours": self.neighbours, "starts": self.starts}
+        return {"block_ids": self.block_ids, "neighbours": self.neighbours, "starts": self.starts,
+                "block_weights": self.block_weights}
 
     def load_state_dict(self, state_dict: dict[str, Any]) -> None:
         self.__init__(state_dict["block_ids"], neighbours=state_dict.get("neighbours"),
-                      starts=state_dict.get("starts"))
+                      starts=state_dict.get("starts"), block_weights=state_dict.get("block_weights"))
 
     def __repr__(self) -> str:
         near = "" if self.neighbours is None else f", neighbours={self.neighbours}"
+        if self.block_weights is not None:
+            near += f", block_weights={[round(w, 4) for w in self.block_weights.tolist()]}"
         return f"{type(self).__name__}(num_blocks={self.num_blocks}, sizes={self._counts.tolist()}{near})"
 
 
@@ -269,6 +294,7 @@ def make_block_pair_buffer(
     keys: Sequence[NestedKey] | None = ("observation", "action", "mask"),
     scores: torch.Tensor | None = None,
     neighbours: int | None = None,
+    block_weights: Sequence[float] | torch.Tensor | None = None,
 ) -> TensorDictReplayBuffer:
     """Replay buffer over ``trajs`` whose ``sample()`` is an adjacent-block pair batch (Eq. 5).
 
@@ -288,9 +314,12 @@ def make_block_pair_buffer(
         neighbours: pair each condition only with the ``m`` next-block trajectories whose first
             observation is nearest to its own (:class:`BlockPairSampler`; not the paper's).
             ``None`` (default): uniform pairs.
+        block_weights: ``K - 1`` weights of the transitions ``k -> k+1`` (:class:`BlockPairSampler`; not the
+            paper's). ``None`` (default): every transition equally often.
 
     Raises:
-        ValueError: malformed ``trajs``, ``block_ids`` or ``scores`` of the wrong length, < 2 blocks.
+        ValueError: malformed ``trajs``, ``block_ids`` or ``scores`` of the wrong length, < 2 blocks,
+            ``block_weights`` not one non-negative weight per transition.
     """
     validate_trajectories(trajs, name="make_block_pair_buffer: trajs")
     block_ids = torch.as_tensor(block_ids)
@@ -302,7 +331,7 @@ def make_block_pair_buffer(
         trajs = with_normalized_scores(trajs, scores)
         keys = None if keys is None else [*keys, NORMALIZED_SCORE_KEY]
     starts = None if neighbours is None else trajs.get("observation")[:, 0]
-    sampler = BlockPairSampler(block_ids, neighbours=neighbours, starts=starts)
+    sampler = BlockPairSampler(block_ids, neighbours=neighbours, starts=starts, block_weights=block_weights)
     return _pair_buffer(trajs, sampler, batch_size=batch_size, seed=seed, keys=keys)
 
 
