@@ -20,7 +20,11 @@ true return of conditions and samples and the share of samples above their own c
 after the stop-rule cut, the definition of the flow's ``true_return_filled_stop_rule_*`` statistics. ``--preset P
 --stride S`` trains the fresh diffuser on every S-th step (:func:`~torchrl_ftb.data.coarsen_trajectories`) and reads
 its samples at the data's horizon (:func:`~torchrl_ftb.data.refine_trajectories`), beside each block's conditions'
-own round trip (``bench/coarsen_round_trip.py`` measures what a round trip keeps). JSON to
+own round trip (``bench/coarsen_round_trip.py`` measures what a round trip keeps). ``--pair-weights 0,0,1,1``
+trains the fresh diffuser only on the pairs into the top blocks (``BlockPairSampler(block_weights=...)``);
+``--hold`` trains and conditions it on trajectories held at their last step to the full horizon
+(:func:`~torchrl_ftb.data.hold_last_step`: nothing padded, so no length to generate) and cuts its samples by
+the ``--streak`` stop rule. Both are locked to the work dir's checkpoint. JSON to
 ``bench/results/diffuser_conditioning/<task>-<run>-<tag>.json`` after every evaluation
 (partial results survive a kill). ``--device cuda --autocast-bf16 --max-minutes M`` is the
 GPU check (paper preset) that decides whether our CPU-budget findings are about the budget.
@@ -53,7 +57,7 @@ from flow_diagnostics import (  # noqa: E402
 )
 from pair_starts import start_views  # noqa: E402
 
-from torchrl_ftb.data import coarsen_trajectories, refine_trajectories  # noqa: E402
+from torchrl_ftb.data import coarsen_trajectories, hold_last_step, refine_trajectories  # noqa: E402
 from torchrl_ftb.diffusion import (  # noqa: E402
     get_preset, load_diffuser, make_diffuser, parse_overrides, train_diffuser,
 )
@@ -225,6 +229,10 @@ def main() -> None:
     parser.add_argument("--pair-weights", type=_weights, default=None, metavar="W0,W1,...",
                         help="with --preset and block pairs: weights of the transitions k -> k+1 (K - 1 of them, "
                              "e.g. 0,0,1,1: only pairs into the top two of 5 blocks); default uniform (the paper's)")
+    parser.add_argument("--hold", action="store_true",
+                        help="with --preset: train on and condition on trajectories held at their last step to the "
+                             "full horizon (torchrl_ftb.data.hold_last_step: no padding, no length to generate); "
+                             "the samples are cut again by --streak's stop rule")
     parser.add_argument("--device", default=None, help="default: cuda if available, else cpu")
     parser.add_argument("--autocast-bf16", action="store_true", help="bf16 autocast in training and sampling")
     parser.add_argument("--max-minutes", type=float, default=None,
@@ -238,6 +246,9 @@ def main() -> None:
         parser.error("--stride needs --preset (a fresh diffuser on the coarsened trajectories)")
     if args.override and args.preset is None:
         parser.error("--override KEY=VALUE needs --preset (a fresh diffuser)")
+    if args.hold and (args.preset is None or args.streak is None):
+        parser.error("--hold needs --preset (a fresh diffuser on held trajectories) and --streak (the stop rule "
+                     "that cuts the held samples)")
     if args.pair_weights is not None and (args.preset is None or args.pairs != "blocks"):
         parser.error("--pair-weights needs --preset and block pairs (a fresh diffuser on reweighted pairs)")
     try:
@@ -249,6 +260,8 @@ def main() -> None:
     if args.streak is not None and args.horizon is None:
         parser.error("--streak needs --horizon (the stop-rule cut comes before the fill)")
     cfg, trajs, returns = load_run(run, with_returns=True, horizon=args.horizon)
+    if args.hold:  # the returns stay the recorded episodes' (the conditions' true value)
+        trajs = hold_last_step(trajs)
     name = str(cfg.env.name)
     reward_fn = true_reward_fn(name, with_success=args.streak is not None)
     sampler, sample_steps, guidance = sampling_settings(cfg, sampler=args.sampler, steps=args.sample_steps,
@@ -266,7 +279,8 @@ def main() -> None:
                                    + (f"_{args.preset}" if args.preset else "")
                                    + "".join(f"_{o.replace('=', '-')}" for o in args.override)
                                    + (f"_stride{args.stride}" if args.stride > 1 else "")
-                                   + ("_w" + "-".join(f"{w:g}" for w in args.pair_weights) if args.pair_weights else ""))
+                                   + ("_w" + "-".join(f"{w:g}" for w in args.pair_weights) if args.pair_weights else "")
+                                   + ("_hold" if args.hold else ""))
     work.mkdir(parents=True, exist_ok=True)
     ckpt = work / "diffuser_last.pt"
     blocks = torch.load(run / "checkpoints" / "blocks.pt", weights_only=True)
@@ -311,14 +325,14 @@ def main() -> None:
         except ValueError as err:  # e.g. --pair-weights of another block count than the run's
             parser.error(f"{run / 'checkpoints' / 'blocks.pt'}: {err}")
     tag = f"-{args.tag}" if args.tag else ""
-    # the pairs' transition weights travel with the work dir's checkpoint (a resume must not change them)
-    weights_file = work / "pair_weights.json"
-    trained_on = json.loads(weights_file.read_text())["pair_weights"] if weights_file.exists() else None
-    if trained_on != args.pair_weights and (weights_file.exists() or ckpt.exists()):
-        parser.error(f"{work}: its diffuser trained on pair weights {trained_on}, not {args.pair_weights}; "
-                     "use another --work-dir")
-    if args.pair_weights is not None:
-        write_json(weights_file, {"pair_weights": args.pair_weights})
+    # what the work dir's checkpoint trained on travels with it (a resume must not change it)
+    data_file = work / "training_data.json"
+    training_data = {"pair_weights": args.pair_weights, "hold": args.hold}
+    trained_on = (json.loads(data_file.read_text()) if data_file.exists()
+                  else {"pair_weights": None, "hold": False} if ckpt.exists() else training_data)
+    if trained_on != training_data:
+        parser.error(f"{work}: its diffuser trained on {trained_on}, not {training_data}; use another --work-dir")
+    write_json(data_file, training_data)
     out = ROOT / "bench" / "results" / "diffuser_conditioning" / f"{name}-{run.name}{tag}.json"
     record = {**run_record(config={**vars(args), "run_dir": str(run), "sampler": sampler,
                                    "sample_steps": int(sample_steps), "guidance": float(guidance),

@@ -8,6 +8,7 @@ from tensordict import TensorDict
 from torchrl_ftb.data import (
     coarsen_trajectories,
     flat_to_trajectories,
+    hold_last_step,
     load_trajectories,
     pad_trajectories,
     refine_trajectories,
@@ -190,3 +191,29 @@ def test_coarsen_refine_reject_a_bad_stride(toy_data):
         coarsen_trajectories(toy_data, 0)
     with pytest.raises(ValueError, match="stride must be >= 1"):
         refine_trajectories(toy_data.select("observation", "mask"), 0, horizon=8)
+
+
+def test_hold_last_step_continues_each_trajectory_with_its_end_state():
+    data = make_toy_dataset(num_trajectories=12, horizon=20, seed=2)
+    lengths = trajectory_lengths(data)
+    assert bool((lengths < 20).any())  # some padding to hold
+    held = hold_last_step(data)
+    assert bool(held["mask"].all())
+    rows, valid = torch.arange(12), data["mask"]
+    assert torch.equal(held["observation"][valid], data["observation"][valid])  # the recorded steps unchanged
+    assert torch.equal(held["action"][valid], data["action"][valid])
+    t = torch.arange(20).unsqueeze(0)
+    after = t >= lengths.unsqueeze(-1)
+    last_obs = data["observation"][rows, lengths - 1].unsqueeze(1).expand_as(held["observation"])
+    assert torch.equal(held["observation"][after], last_obs[after])
+    assert bool((held["action"][after] == 0).all())
+    # nested keys are held too (the last reward: what the stop-rule fill assumes)
+    last_reward = data["next", "reward"][rows, lengths - 1].unsqueeze(1).expand_as(held["next", "reward"])
+    assert torch.equal(held["next", "reward"][after], last_reward[after])
+    # on the toy's dynamics (p' = p + 0.1 a) a zero action holds the position: the held steps are consistent
+    step = held["observation"][:, 1:, :2] - held["observation"][:, :-1, :2]
+    assert bool((step[after[:, 1:]] == 0).all())
+    empty = data[:2].clone()
+    empty["mask"][1] = False
+    with pytest.raises(ValueError, match=r"hold_last_step: trajectories \[1\] have no valid step"):
+        hold_last_step(empty)

@@ -405,6 +405,50 @@ def refine_trajectories(td: TensorDictBase, stride: int, *, horizon: int,
     return TensorDict(out, batch_size=[n, horizon], device=td.device)
 
 
+def hold_last_step(td: TensorDictBase, *, zero: Sequence[str] = ("action",)) -> TensorDict:
+    """Each trajectory of a padded ``[N, H]`` batch continued to the full horizon by holding its last step.
+
+    The padded steps ``t >= n`` of a length-``n`` trajectory become valid steps (the mask is all True) that repeat
+    step ``n - 1``, except the keys in ``zero`` (default: the action), which are 0 there. On Meta-World (actions
+    move the hand by a position delta) a zero action holds the hand where it is, so the continuation is the state
+    the episode ended in, held: what the stop-rule fill (:func:`stop_rule_fill`) already assumes of the return.
+    A model of held batches has no length to generate: the end of a trajectory is a stationary state instead of a
+    jump to padding, and the success-streak stop rule cuts a generated one again
+    (:func:`torchrl_ftb.flow.masked_true_returns` with ``streaks``).
+
+    Args:
+        td: ``[N, H]`` batch with a prefix ``mask``; every trajectory has at least one valid step. Nested keys
+            (e.g. ``("next", "reward")``) are held too.
+
+    Keyword Args:
+        zero: keys set to 0 on the held steps.
+
+    Example:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> td = TensorDict({"observation": torch.arange(4.0).reshape(1, 4, 1), "action": torch.ones(1, 4, 1),
+        ...                  "mask": torch.tensor([[True, True, False, False]])}, batch_size=[1, 4])
+        >>> held = hold_last_step(td)
+        >>> held["observation"][0, :, 0].tolist(), held["action"][0, :, 0].tolist(), held["mask"].all().item()
+        ([0.0, 1.0, 1.0, 1.0], [1.0, 1.0, 0.0, 0.0], True)
+    """
+    mask = td.get("mask").bool()
+    lengths = mask.sum(-1, keepdim=True)  # [N, 1]
+    if bool((lengths == 0).any()):
+        raise ValueError(f"hold_last_step: trajectories {torch.nonzero(lengths[:, 0] == 0).flatten().tolist()[:10]} "
+                         "have no valid step to hold")
+    n, horizon = mask.shape
+    t = torch.arange(horizon, device=mask.device).unsqueeze(0).expand(n, -1)
+    steps = torch.minimum(t, lengths - 1)  # [N, H]: the step each time repeats
+    out = td.exclude("mask").apply(lambda value: _at_steps(value, steps), batch_size=[n, horizon])
+    held = t >= lengths
+    for key in zero:
+        value = out.get(key)
+        out.set(key, value * ~held.reshape(*held.shape, *([1] * (value.dim() - 2))))
+    out.set("mask", torch.ones_like(mask))
+    return out
+
+
 @contextlib.contextmanager
 def atomic_file(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temp file beside ``path`` (same suffix) that replaces ``path`` only on success.
