@@ -175,7 +175,8 @@ def _num(value: float | None) -> str:
 
 def summarize(paths: list[Path]) -> str:
     """Markdown table of saved results: one row per (file, evaluation). ``--stride`` files also give each block's
-    conditions' own round trip (coarsened and refined), the level a coarse model's samples are read against."""
+    conditions' own round trip (coarsened and refined), the level a coarse model's samples are read against;
+    ``--top-block`` files the share of top-block samples above their own condition and the samples' max."""
     rows = []
     for path in paths:
         rec = json.loads(path.read_text())
@@ -194,7 +195,11 @@ def summarize(paths: list[Path]) -> str:
                                      + (f"; {v['sample_true_return']:.0f} ({_num(v['target_block_true_return'])})"
                                         if "sample_true_return" in v else "")
                                      + (f"; conditions' round trip {v['condition_round_trip_true_return']:.0f}"
-                                        if "condition_round_trip_true_return" in v else "") for v in per.values())
+                                        if "condition_round_trip_true_return" in v else "")
+                                     + (f"; above own condition {v['samples_above_condition']:.0%}, max "
+                                        f"{v['sample_true_return_max']:.0f} (conditions' {v['condition_true_return_max']:.0f})"
+                                        if v["target_block_score"] is None and "samples_above_condition" in v else "")
+                                     for v in per.values())
                         + " |")
     return "\n".join(rows)
 

@@ -59,7 +59,10 @@ def test_top_block_conditions_have_no_target_and_keep_the_other_blocks_statistic
     path.write_text(json.dumps({"evaluations": [{**top, "step": 0}]}))
     table = bench.summarize([path]).splitlines()
     assert "B4 (top: no target) → sample" in table[0]
-    assert table[2].endswith("(—) |") and len(table) == 3
+    b4 = top["per_condition_block"]["4"]
+    assert table[2].endswith(f"(—); above own condition {b4['samples_above_condition']:.0%}, max "
+                             f"{b4['sample_true_return_max']:.0f} (conditions' {b4['condition_true_return_max']:.0f}) |")
+    assert len(table) == 3
 
 
 def test_a_coarse_diffuser_is_conditioned_on_coarse_trajectories_and_read_at_the_datas_horizon(tmp_path):
