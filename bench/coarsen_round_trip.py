@@ -5,6 +5,9 @@ its data's round trip: :func:`~torchrl_ftb.data.coarsen_trajectories` then
 :func:`~torchrl_ftb.data.refine_trajectories`. This bench reads an FTB run's dataset and blocks, and for each
 stride gives the true-reward oracle's return of every trajectory before and after the round trip, per block
 (the stop-rule fill after the stop-rule cut with ``--horizon 500 --streak 25``, as the flow reports it).
+``--hold`` starts each round trip from the trajectories held at their last step to the full horizon
+(:func:`~torchrl_ftb.data.hold_last_step`, what ``bench/diffuser_conditioning.py --hold`` trains on; the stop rule
+cuts them again), and accepts stride 1: the hold alone.
 
 Usage::
 
@@ -25,7 +28,7 @@ sys.path.insert(0, str(ROOT / "bench"))
 
 from flow_diagnostics import load_run, sample_true_return  # noqa: E402
 
-from torchrl_ftb.data import coarsen_trajectories, refine_trajectories  # noqa: E402
+from torchrl_ftb.data import coarsen_trajectories, hold_last_step, refine_trajectories  # noqa: E402
 from torchrl_ftb.envs import true_reward_fn  # noqa: E402
 from torchrl_ftb.provenance import run_record, write_json  # noqa: E402
 
@@ -46,11 +49,15 @@ def main() -> None:
     parser.add_argument("--strides", type=int, nargs="+", default=[2, 5, 10])
     parser.add_argument("--horizon", type=int, default=None)
     parser.add_argument("--streak", type=int, default=None)
+    parser.add_argument("--hold", action="store_true",
+                        help="round trips of the trajectories held at their last step (needs --streak)")
     parser.add_argument("--out", type=Path, default=None,
                         help="default: bench/results/coarsen_round_trip/<task>-<run>.json")
     args = parser.parse_args()
     if args.streak is not None and args.horizon is None:
         parser.error("--streak needs --horizon (the stop-rule cut comes before the fill)")
+    if args.hold and args.streak is None:
+        parser.error("--hold needs --streak: only the stop rule ends a held trajectory")
     cfg, trajs = load_run(args.run_dir)
     name = str(cfg.env.name)
     reward_fn = true_reward_fn(name, with_success=args.streak is not None)
@@ -62,7 +69,8 @@ def main() -> None:
     before = sample_true_return(trajs, reward_fn, horizon=args.horizon, streak=args.streak).double()
     record["strides"] = {}
     for stride in args.strides:
-        trip = refine_trajectories(coarsen_trajectories(trajs, stride), stride, horizon=trajs.batch_size[1])
+        start = hold_last_step(trajs) if args.hold else trajs
+        trip = refine_trajectories(coarsen_trajectories(start, stride), stride, horizon=trajs.batch_size[1])
         after = sample_true_return(trip, reward_fn, horizon=args.horizon, streak=args.streak).double()
         record["strides"][str(stride)] = per_block(before, after, ids)
         summary = record["strides"][str(stride)]
