@@ -217,3 +217,5 @@ def test_hold_last_step_continues_each_trajectory_with_its_end_state():
     empty["mask"][1] = False
     with pytest.raises(ValueError, match=r"hold_last_step: trajectories \[1\] have no valid step"):
         hold_last_step(empty)
+    with pytest.raises(ValueError, match=r"names keys the batch does not have: \['force'\]"):
+        hold_last_step(data, zero=("action", "force"))

@@ -442,6 +442,9 @@ def hold_last_step(td: TensorDictBase, *, zero: Sequence[str] = ("action",)) -> 
     steps = torch.minimum(t, lengths - 1)  # [N, H]: the step each time repeats
     out = td.exclude("mask").apply(lambda value: _at_steps(value, steps), batch_size=[n, horizon])
     held = t >= lengths
+    missing = [key for key in zero if key not in out.keys(True)]
+    if missing:
+        raise ValueError(f"hold_last_step: zero={list(zero)} names keys the batch does not have: {missing}")
     for key in zero:
         value = out.get(key)
         out.set(key, value * ~held.reshape(*held.shape, *([1] * (value.dim() - 2))))
