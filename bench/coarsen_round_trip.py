@@ -68,8 +68,8 @@ def main() -> None:
     t0 = time.time()
     before = sample_true_return(trajs, reward_fn, horizon=args.horizon, streak=args.streak).double()
     record["strides"] = {}
+    start = hold_last_step(trajs) if args.hold else trajs
     for stride in args.strides:
-        start = hold_last_step(trajs) if args.hold else trajs
         trip = refine_trajectories(coarsen_trajectories(start, stride), stride, horizon=trajs.batch_size[1])
         after = sample_true_return(trip, reward_fn, horizon=args.horizon, streak=args.streak).double()
         record["strides"][str(stride)] = per_block(before, after, ids)

@@ -89,10 +89,9 @@ def evaluate(diffuser, model, trajs, scores, ids, *, per_block: int, sampler: st
         blocks += [k] * chosen.numel()
     idx = torch.cat(picks)
     blocks = torch.tensor(blocks)
-    cond = trajs[idx]
+    conditions = trajs[idx]
     full_horizon = trajs.batch_size[1]
-    if stride > 1:
-        cond = coarsen_trajectories(cond, stride)
+    cond = coarsen_trajectories(conditions, stride) if stride > 1 else conditions  # what the model is given
     sample = diffuser.generate(cond, sampler=sampler, steps=steps, guidance=guidance, generator=gen,
                                autocast_bf16=autocast_bf16).to("cpu")
     round_trip = None
@@ -131,7 +130,7 @@ def evaluate(diffuser, model, trajs, scores, ids, *, per_block: int, sampler: st
                                        condition_round_trip_true_return_max=float(true_round[m].max()),
                                        samples_above_round_trip=float((true_new[m] > true_round[m]).double().mean()))
     per_start = start_gaps_to_conditions(sample["observation"][:, 0].float(),
-                                         trajs[idx]["observation"][:, 0].float(), trajs["observation"][:, 0].float())
+                                         conditions["observation"][:, 0].float(), trajs["observation"][:, 0].float())
     inner = blocks < num_blocks - 1  # the correlations: blocks that are conditions in training
     extra = {} if true_new is None else {
         "spearman_sample_true_return_vs_condition_block": spearman(blocks[inner].double(), true_new[inner])}
@@ -159,14 +158,12 @@ def start_gaps_to_conditions(sample_starts: torch.Tensor, condition_starts: torc
 
 
 def _weights(text: str) -> list[float]:
-    """``--pair-weights`` value: comma-separated non-negative numbers."""
+    """``--pair-weights`` value: comma-separated numbers (``BlockPairSampler`` checks them against the run's
+    blocks: one per transition, non-negative, not all zero)."""
     try:
-        weights = [float(w) for w in text.split(",")]
+        return [float(w) for w in text.split(",")]
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r}: expected comma-separated numbers, e.g. 0,0,1,1") from None
-    if any(w < 0 for w in weights) or sum(weights) <= 0:
-        raise argparse.ArgumentTypeError(f"{text!r}: weights must be non-negative, not all zero")
-    return weights
 
 
 def _num(value: float | None) -> str:
