@@ -16,6 +16,13 @@ condition's block), which a small convolutional encoder did not learn to compute
 steps (BENCHMARKS, "Does the diffuser follow its condition?"). Decision Diffuser conditions
 on returns the same way. The null condition carries no score.
 
+``linear_skip=True`` adds a pointwise linear map of the (masked, normalised) condition to the
+embedding, beside the convolutional path. Written here because no encoder we could reuse has it,
+and it is a fix, not a variant: each convolutional block ends in a GroupNorm over the whole
+horizon, which removes every trajectory's own level and scale per channel group, so what is
+constant along a trajectory (an object's or goal's position) and how far a channel moves reach
+the backbone only in part. The skip hands them on unnormalised.
+
 Example:
     >>> import torch
     >>> enc = TrajectoryEncoder(5, embed_dim=16)
@@ -23,6 +30,8 @@ Example:
     >>> emb.shape, mask.shape
     (torch.Size([2, 9, 16]), torch.Size([2, 9]))
     >>> enc.null(2, 9)[0].shape
+    torch.Size([2, 9, 16])
+    >>> TrajectoryEncoder(5, embed_dim=16, linear_skip=True)(torch.randn(2, 9, 5), torch.ones(2, 9).bool())[0].shape
     torch.Size([2, 9, 16])
     >>> scored = TrajectoryEncoder(5, embed_dim=16, score_condition=True)
     >>> scored(torch.randn(2, 9, 5), torch.ones(2, 9, dtype=torch.bool), score=torch.tensor([0.2, 0.9]))[0].shape
@@ -46,10 +55,12 @@ class TrajectoryEncoder(nn.Module):
         embed_dim: output size ``d_tau``.
         kernel_size: temporal kernel of both convolutions.
         score_condition: also embed the condition's normalised score (``forward(score=)``).
+        linear_skip: add a pointwise linear map of the condition itself to the embedding (what
+            the convolutional path's GroupNorm takes out: each trajectory's level and scale).
     """
 
     def __init__(self, transition_dim: int, *, embed_dim: int = 128, kernel_size: int = 5,
-                 score_condition: bool = False) -> None:
+                 score_condition: bool = False, linear_skip: bool = False) -> None:
         super().__init__()
         self.transition_dim = int(transition_dim)
         self.embed_dim = int(embed_dim)
@@ -65,6 +76,9 @@ class TrajectoryEncoder(nn.Module):
             nn.GroupNorm(groups, embed_dim),
             nn.Mish(),
         )
+        self.linear_skip = bool(linear_skip)
+        if self.linear_skip:
+            self.skip = nn.Conv1d(transition_dim, embed_dim, 1)
         self.null_embedding = nn.Parameter(torch.randn(embed_dim) * 0.02)
 
     def forward(self, x: torch.Tensor, mask: torch.Tensor,
@@ -81,7 +95,8 @@ class TrajectoryEncoder(nn.Module):
                              f"(score_condition={self.score_condition})")
         mask = mask.bool()
         x = x * mask[..., None].to(x.dtype)
-        emb = self.net(x.transpose(1, 2)).transpose(1, 2)
+        h = x.transpose(1, 2)
+        emb = (self.net(h) + self.skip(h) if self.linear_skip else self.net(h)).transpose(1, 2)
         if score is not None:
             if score.shape != x.shape[:1]:
                 raise ValueError(f"TrajectoryEncoder: score must be [{x.shape[0]}], got {list(score.shape)}")

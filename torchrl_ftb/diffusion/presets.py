@@ -28,6 +28,9 @@ Presets differ only in numbers:
   ``score_condition=True`` hands the encoder the condition's normalised score ``ŝ(tau_0)``
   (:class:`~torchrl_ftb.diffusion.TrajectoryEncoder`); conditions then need
   :data:`~torchrl_ftb.preference.NORMALIZED_SCORE_KEY`.
+  ``encoder_skip=True`` adds a pointwise linear path to the condition encoder beside its
+  GroupNorm-ed convolutions (:class:`~torchrl_ftb.diffusion.TrajectoryEncoder` ``linear_skip``),
+  so each condition's own level and scale reach the backbone.
   ``prediction_type="sample"`` trains the backbone to output the clean ``x_0`` instead of the
   noise (Janner et al.'s Diffuser, ``predict_epsilon=False``); sampling, clipping and guidance
   are unchanged (:class:`~torchrl_ftb.diffusion.DiffusionProcess`). **Measured** (cpu preset, 4,500
@@ -84,6 +87,7 @@ _MODEL_DEFAULTS = dict(
     global_condition=False,
     concat_condition=False,
     score_condition=False,
+    encoder_skip=False,
     num_train_timesteps=1000,
     beta_schedule="squaredcos_cap_v2",
     prediction_type="epsilon",
@@ -261,7 +265,8 @@ def make_diffuser(
     )
     encoder = None if unconditional else TrajectoryEncoder(diffused, embed_dim=cfg["cond_dim"],
                                                            kernel_size=cfg["kernel_size"],
-                                                           score_condition=cfg["score_condition"])
+                                                           score_condition=cfg["score_condition"],
+                                                           linear_skip=cfg["encoder_skip"])
     diffuser = TrajectoryDiffuser(
         backbone,
         encoder,
