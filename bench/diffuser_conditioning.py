@@ -231,6 +231,10 @@ def main() -> None:
     parser.add_argument("--pair-weights", type=_weights, default=None, metavar="W0,W1,...",
                         help="with --preset and block pairs: weights of the transitions k -> k+1 (K - 1 of them, "
                              "e.g. 0,0,1,1: only pairs into the top two of 5 blocks); default uniform (the paper's)")
+    parser.add_argument("--pair-neighbours", type=int, default=None, metavar="M",
+                        help="with --preset and block pairs: pair each condition with one of the M next-block "
+                             "trajectories that start nearest to it (BlockPairSampler(neighbours=M)); default the "
+                             "run's own diffuser.pair_neighbours")
     parser.add_argument("--hold", action="store_true",
                         help="with --preset: train on and condition on trajectories held at their last step to the "
                              "full horizon (torchrl_ftb.data.hold_last_step: no padding, no length to generate); "
@@ -253,6 +257,8 @@ def main() -> None:
                      "that cuts the held samples)")
     if args.pair_weights is not None and (args.preset is None or args.pairs != "blocks"):
         parser.error("--pair-weights needs --preset and block pairs (a fresh diffuser on reweighted pairs)")
+    if args.pair_neighbours is not None and (args.preset is None or args.pairs != "blocks"):
+        parser.error("--pair-neighbours needs --preset and block pairs (a fresh diffuser on start-matched pairs)")
     try:
         overrides = parse_overrides(args.override)
     except ValueError as err:
@@ -282,6 +288,7 @@ def main() -> None:
                                    + "".join(f"_{o.replace('=', '-')}" for o in args.override)
                                    + (f"_stride{args.stride}" if args.stride > 1 else "")
                                    + ("_w" + "-".join(f"{w:g}" for w in args.pair_weights) if args.pair_weights else "")
+                                   + (f"_nn{args.pair_neighbours}" if args.pair_neighbours is not None else "")
                                    + ("_hold" if args.hold else ""))
     work.mkdir(parents=True, exist_ok=True)
     ckpt = work / "diffuser_last.pt"
@@ -311,6 +318,7 @@ def main() -> None:
     diffuser.to(device)
     if diffuser.score_condition:  # conditions (evaluation, copy pairs) carry their normalised score
         trajs, coarse = with_normalized_scores(trajs, scores), with_normalized_scores(coarse, scores)
+    neighbours = args.pair_neighbours if args.pair_neighbours is not None else cfg.diffuser.get("pair_neighbours")
     if args.pairs == "copy":
         copy_gen = torch.Generator().manual_seed(int(cfg.seed))
 
@@ -319,19 +327,21 @@ def main() -> None:
             return TensorDict({"condition": picked, "target": picked}, batch_size=[batch_size])
     else:
         # every key of trajs: observation, action, mask (+ the normalised score attached above); the run's
-        # own pairing (diffuser.pair_neighbours)
+        # own pairing (diffuser.pair_neighbours) unless --pair-neighbours
         try:
             buffer = make_block_pair_buffer(coarse, ids, batch_size=batch_size, seed=int(cfg.seed), keys=None,
-                                            neighbours=cfg.diffuser.get("pair_neighbours"),
+                                            neighbours=neighbours,
                                             block_weights=args.pair_weights)
         except ValueError as err:  # e.g. --pair-weights of another block count than the run's
             parser.error(f"{run / 'checkpoints' / 'blocks.pt'}: {err}")
     tag = f"-{args.tag}" if args.tag else ""
     # what the work dir's checkpoint trained on travels with it (a resume must not change it)
     data_file = work / "training_data.json"
-    training_data = {"pair_weights": args.pair_weights, "hold": args.hold}
-    trained_on = (json.loads(data_file.read_text()) if data_file.exists()
-                  else {"pair_weights": None, "hold": False} if ckpt.exists() else training_data)
+    training_data = {"pair_weights": args.pair_weights, "hold": args.hold, "pair_neighbours": neighbours}
+    run_default = {"pair_weights": None, "hold": False, "pair_neighbours": cfg.diffuser.get("pair_neighbours")}
+    # files written before a field existed trained with its default
+    trained_on = ({**run_default, **json.loads(data_file.read_text())} if data_file.exists()
+                  else run_default if ckpt.exists() else training_data)
     if trained_on != training_data:
         parser.error(f"{work}: its diffuser trained on {trained_on}, not {training_data}; use another --work-dir")
     write_json(data_file, training_data)
