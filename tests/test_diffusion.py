@@ -501,6 +501,22 @@ def test_concat_condition_path_is_local_masked_and_loads_legacy(data, tmp_path):
 
 
 
+def test_encoder_skip_keeps_each_conditions_level_and_scale_and_loads_legacy(data, tmp_path):
+    """The convolutional path ends in a GroupNorm over the horizon (here one channel per group): a condition and
+    an affine copy of it (3 x + 2) encode alike away from the edges. The linear skip tells them apart."""
+    torch.manual_seed(0)
+    x, mask = torch.randn(2, 200, 1), torch.ones(2, 200, dtype=torch.bool)
+    for skip, differ in ((False, False), (True, True)):
+        enc = TrajectoryEncoder(1, embed_dim=8, linear_skip=skip).eval()
+        gap = float((enc(x, mask)[0] - enc(3 * x + 2, mask)[0])[:, 10:-10].abs().max())
+        assert (gap > 1.0 if differ else gap < 0.1), (skip, gap)
+    diff = make_diffuser("tiny", obs_dim=3, action_dim=2, horizon=H, encoder_skip=True).fit_normalizer(data)
+    assert diff.config["encoder_skip"] is True and diff.encoder.linear_skip
+    train_diffuser(diff, lambda: _pairs(data, torch.arange(8), torch.arange(8, 16)), steps=2, progress=False)
+    assert diff.generate(data[:3], sampler="ddim", steps=3)["observation"].shape == (3, H, 3)
+    assert not _load_without_option(data, tmp_path, "encoder_skip").encoder.linear_skip
+
+
 def test_score_condition_feeds_the_normalised_score_and_loads_legacy(data, tmp_path):
     torch.manual_seed(0)
     enc = TrajectoryEncoder(5, embed_dim=8, score_condition=True)

@@ -291,5 +291,6 @@ def make_diffuser(
                        "lagged_dims": lagged_dims, "time_constant_dims": time_constant_dims,
                        "global_condition": bool(cfg["global_condition"]),
                        "concat_condition": bool(cfg["concat_condition"]),
-                       "score_condition": bool(cfg["score_condition"]), **overrides}
+                       "score_condition": bool(cfg["score_condition"]),
+                       "encoder_skip": bool(cfg["encoder_skip"]), **overrides}
     return diffuser
