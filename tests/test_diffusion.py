@@ -186,11 +186,24 @@ def test_sample_prediction_is_the_same_model_seen_through_x0(sampler):
     want = d.process.sample(eps, (6, 8, d.transition_dim), generator=torch.Generator().manual_seed(0), **kw)
     got = x0_process.sample(x0, (6, 8, d.transition_dim), generator=torch.Generator().manual_seed(0), **kw)
     torch.testing.assert_close(got, want, atol=1e-3, rtol=1e-3)
-    x = torch.randn(5, 8, 3)
+    # v prediction: the v = sqrt(abar) eps - sqrt(1 - abar) x0 the same eps-denoiser implies
+    v_process = DiffusionProcess(prediction_type="v_prediction")
+
+    def v(x, t):
+        a = abar[t].view(-1, 1, 1)
+        return a.sqrt() * eps(x, t) - (1 - a).sqrt() * x0(x, t)
+
+    got = v_process.sample(v, (6, 8, d.transition_dim), generator=torch.Generator().manual_seed(0), **kw)
+    torch.testing.assert_close(got, want, atol=1e-3, rtol=1e-3)
+    x, t = torch.randn(5, 8, 3), torch.tensor([0, 10, 500, 900, 999])
     assert torch.equal(x0_process.training_target(x, x + 1), x)  # regressed on the clean data
     assert torch.equal(d.process.training_target(x, x + 1), x + 1)  # regressed on the noise
+    a = abar[t].view(-1, 1, 1)
+    torch.testing.assert_close(v_process.training_target(x, x + 1, t), a.sqrt() * (x + 1) - (1 - a).sqrt() * x)
+    with pytest.raises(ValueError, match="needs the timesteps"):
+        v_process.training_target(x, x + 1)
     with pytest.raises(ValueError, match="prediction_type"):
-        DiffusionProcess(prediction_type="v_prediction")
+        DiffusionProcess(prediction_type="velocity")
 
 
 def test_sample_prediction_trains_on_x0_and_survives_save_load(data, tmp_path):
@@ -211,6 +224,28 @@ def test_sample_prediction_trains_on_x0_and_survives_save_load(data, tmp_path):
     assert all(map(math.isfinite, out["losses"]))
     d2 = load_diffuser(save_diffuser(d, tmp_path / "d.pt"))
     assert d2.process.prediction_type == "sample"
+    module = dict(sampler="ddpm", steps=4, seed=3)
+    a = DiffusionSampler(d, **module)(TensorDict({"condition": data[:4]}, batch_size=[4]))["sample"]
+    b = DiffusionSampler(d2, **module)(TensorDict({"condition": data[:4]}, batch_size=[4]))["sample"]
+    assert torch.equal(a["observation"], b["observation"])
+
+
+def test_v_prediction_trains_on_the_velocity_and_survives_save_load(data, tmp_path):
+    d = make_diffuser("tiny", obs_dim=3, action_dim=2, horizon=H, prediction_type="v_prediction").fit_normalizer(data)
+    batch = _pairs(data, torch.arange(8), torch.arange(8, 16))
+    # the loss regresses on v at each sample's own t; at t = T - 1 (abar ~ 0) v is -x0, which eps's loss is far from
+    target = batch["target"]
+    x0 = d.model_input(d.raw_data_from_td(target), target["mask"].bool())
+    d_eps = _diffuser(data)
+    for model, low in ((d, True), (d_eps, False)):
+        model.process.sample_timesteps = lambda batch, device=None, generator=None: torch.full((batch,), 999)
+        model.backbone.forward = lambda x_t, t, *args, **kwargs: -x0
+        assert (float(DiffusionLoss(model)(batch)["loss_diffusion"]) < 1e-6) is low
+        del model.process.sample_timesteps, model.backbone.forward
+    out = train_diffuser(d, lambda: batch, steps=3, lr=1e-2, progress=False)
+    assert all(map(math.isfinite, out["losses"]))
+    d2 = load_diffuser(save_diffuser(d, tmp_path / "d.pt"))
+    assert d2.process.prediction_type == "v_prediction"
     module = dict(sampler="ddpm", steps=4, seed=3)
     a = DiffusionSampler(d, **module)(TensorDict({"condition": data[:4]}, batch_size=[4]))["sample"]
     b = DiffusionSampler(d2, **module)(TensorDict({"condition": data[:4]}, batch_size=[4]))["sample"]

@@ -117,7 +117,7 @@ class DiffusionLoss(LossModule):
             drop = torch.rand(batch, device=x0.device) < d.cond_drop_prob
             cond_emb, cond_mask = d.encode_condition(d.condition_input(craw, cmask), cmask, score=score, drop=drop)
         out = d.backbone(x_t, t, cond_emb, cond_mask)
-        err = (out.float() - d.process.training_target(x0, noise)).pow(2)
+        err = (out.float() - d.process.training_target(x0, noise, t)).pow(2)
         data_err = (err[..., :-1] * mask[..., None]).sum()
         valid_err = err[..., -1].sum()
         n_data = mask.sum() * d.diffused_dim

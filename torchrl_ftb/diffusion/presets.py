@@ -36,6 +36,7 @@ Presets differ only in numbers:
   are unchanged (:class:`~torchrl_ftb.diffusion.DiffusionProcess`). **Measured** (cpu preset, 4,500
   steps, Meta-World): its samples score higher under s_psi but their hand dynamics are 5-7x further from
   the data's than eps samples' and they rarely end (BENCHMARKS, "x0 prediction"); default ``"epsilon"``.
+  ``prediction_type="v_prediction"`` (Salimans & Ho 2022) is eps-like at small ``t`` and x0-like at large ``t``.
   Why DDPM and not DPM-Solver++/DDIM by default: on the toy task a briefly trained model
   sampled with the deterministic solvers gave clearly worse trajectories (toy, 400 steps:
   block-0 conditions -> mean true return -3.0 with DPM++ 25 / DDIM 25 vs -1.4 with DDPM 50,

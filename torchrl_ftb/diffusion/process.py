@@ -1,4 +1,4 @@
-"""The diffusion process: cosine schedule, T=1000, epsilon (or x0) prediction, and samplers.
+"""The diffusion process: cosine schedule, T=1000, epsilon (or x0, or v) prediction, and samplers.
 
 Schedules and sampler updates come from ``diffusers`` (well-kept, tested maths) rather than
 being hand-written:
@@ -46,7 +46,7 @@ SAMPLERS = ("ddpm", "ddim", "dpm++")
 
 
 class DiffusionProcess:
-    """Forward noising and reverse sampling of a diffusion model that predicts ``eps`` or ``x_0``.
+    """Forward noising and reverse sampling of a diffusion model that predicts ``eps``, ``x_0`` or ``v``.
 
     Args:
         num_train_timesteps: ``T`` (paper: 1000).
@@ -59,12 +59,14 @@ class DiffusionProcess:
             conditions of length 500: generated lengths 3-54 with "trailing", 5 of 8 full-length
             with "leading"). Trailing spacing is meant for zero-terminal-SNR *v*-prediction models.
         prediction_type: what the denoiser outputs and is trained on: ``"epsilon"`` (default; the
-            paper and the authors' code) or ``"sample"`` (the clean ``x_0``; Janner et al.'s Diffuser
-            uses it for its locomotion planners). The loss is the MSE to
-            :meth:`training_target`; samplers see :meth:`to_eps` of the output.
+            paper and the authors' code), ``"sample"`` (the clean ``x_0``; Janner et al.'s Diffuser
+            uses it for its locomotion planners) or ``"v_prediction"`` (``v = sqrt(abar) eps -
+            sqrt(1 - abar) x_0``, Salimans & Ho 2022: ``eps``-like at small ``t``, ``x_0``-like at large
+            ``t``, where an ``eps`` loss barely sees the ``x_0`` the sampler's first steps divide out of
+            it). The loss is the MSE to :meth:`training_target`; samplers see :meth:`to_eps` of the output.
     """
 
-    PREDICTION_TYPES = ("epsilon", "sample")
+    PREDICTION_TYPES = ("epsilon", "sample", "v_prediction")
 
     def __init__(self, *, num_train_timesteps: int = 1000, beta_schedule: str = "squaredcos_cap_v2",
                  timestep_spacing: str = "leading", prediction_type: str = "epsilon") -> None:
@@ -104,19 +106,29 @@ class DiffusionProcess:
         """``abar_t`` per sample, shaped to broadcast against ``x_t``."""
         return self.scheduler.alphas_cumprod.to(x_t.device)[t].view(-1, *([1] * (x_t.ndim - 1)))
 
-    def training_target(self, x0: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
-        """What the denoiser is regressed on: ``noise`` (epsilon prediction) or ``x0`` (sample prediction)."""
-        return noise if self.prediction_type == "epsilon" else x0
+    def training_target(self, x0: torch.Tensor, noise: torch.Tensor, t: torch.Tensor | None = None) -> torch.Tensor:
+        """What the denoiser is regressed on: ``noise`` (epsilon prediction), ``x0`` (sample prediction) or
+        ``sqrt(abar_t) noise - sqrt(1 - abar_t) x0`` (v prediction, which needs the timesteps ``t [B]``)."""
+        if self.prediction_type == "epsilon":
+            return noise
+        if self.prediction_type == "sample":
+            return x0
+        if t is None:
+            raise ValueError("training_target: v prediction needs the timesteps t")
+        return self.scheduler.get_velocity(x0, noise, t)
 
     def to_eps(self, x_t: torch.Tensor, output: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
         """The ``eps`` a denoiser ``output`` at ``(x_t, t)`` stands for.
 
-        For sample prediction ``eps = (x_t - sqrt(abar_t) x0) / sqrt(1 - abar_t)``, affine in
-        the output, so classifier-free guidance on ``x0`` equals guidance on ``eps``.
+        For sample prediction ``eps = (x_t - sqrt(abar_t) x0) / sqrt(1 - abar_t)``, for v prediction
+        ``eps = sqrt(abar_t) v + sqrt(1 - abar_t) x_t``; both affine in the output, so classifier-free
+        guidance on ``x0`` or ``v`` equals guidance on ``eps``.
         """
         if self.prediction_type == "epsilon":
             return output
         abar = self._abar(x_t, t)
+        if self.prediction_type == "v_prediction":
+            return abar.sqrt() * output + (1 - abar).sqrt() * x_t
         return (x_t - abar.sqrt() * output) / (1 - abar).sqrt()
 
     def make_scheduler(self, sampler: str, steps: int):
