@@ -94,6 +94,7 @@ def evaluate(diffuser, model, trajs, scores, ids, *, per_block: int, sampler: st
     cond = coarsen_trajectories(conditions, stride) if stride > 1 else conditions  # what the model is given
     sample = diffuser.generate(cond, sampler=sampler, steps=steps, guidance=guidance, generator=gen,
                                autocast_bf16=autocast_bf16).to("cpu")
+    gap = trajectory_gaps_to_conditions(diffuser, sample, cond.to("cpu"))
     round_trip = None
     if stride > 1:
         sample = refine_trajectories(sample.select("observation", "action", "mask"), stride, horizon=full_horizon)
@@ -136,7 +137,22 @@ def evaluate(diffuser, model, trajs, scores, ids, *, per_block: int, sampler: st
         "spearman_sample_true_return_vs_condition_block": spearman(blocks[inner].double(), true_new[inner])}
     return {**extra, "spearman_sample_score_vs_condition_block": spearman(blocks[inner].double(), s_new[inner]),
             "spearman_sample_score_vs_condition_score": spearman(scores[idx[inner]], s_new[inner]),
-            "per_condition_block": per, "num_conditions": int(idx.numel()), "start_gap": per_start}
+            "per_condition_block": per, "num_conditions": int(idx.numel()), "start_gap": per_start,
+            "trajectory_gap": gap}
+
+
+def trajectory_gaps_to_conditions(diffuser, sample, conditions) -> dict[str, float]:
+    """How close is each sample to its own condition, in the diffuser's own (normalised) space and at its
+    resolution? The mean squared difference per step and diffused dimension over the steps both have, to its own
+    condition (``own``) and, averaged, to every other one (``other``). A copy is ``own`` ~ 0; a sample that
+    ignores its condition has ``own`` ~ ``other``; two independent data trajectories are ~ 2 apart."""
+    z_s = diffuser.model_input(diffuser.raw_data_from_td(sample), sample["mask"].bool())[..., :-1].double()
+    z_c = diffuser.model_input(diffuser.raw_data_from_td(conditions), conditions["mask"].bool())[..., :-1].double()
+    both = (sample["mask"].bool()[:, None] & conditions["mask"].bool()[None]).double()  # [n samples, n conds, H]
+    sq = ((z_s[:, None] - z_c[None]) ** 2).mean(-1)  # [n, n, H]
+    dist = (sq * both).sum(-1) / both.sum(-1).clamp(min=1)
+    n, own = dist.shape[0], dist.diagonal()
+    return {"own": float(own.mean()), "other": float(((dist.sum(1) - own) / max(n - 1, 1)).mean())}
 
 
 def start_gaps_to_conditions(sample_starts: torch.Tensor, condition_starts: torch.Tensor,
@@ -366,6 +382,7 @@ def main() -> None:
               f"spearman(score) {ev['spearman_sample_score_vs_condition_score']:.3f} "
               + " ".join(f"B{k}:{v['sample_score']:.0f}/{_num(v['target_block_score'])}"
                          for k, v in ev["per_condition_block"].items())
+              + f" trajectory gap own/other {ev['trajectory_gap']['own']:.2f}/{ev['trajectory_gap']['other']:.2f},"
               + " start gap own/other " + ", ".join(f"{k.removesuffix('_own')} {v:.2f}/{ev['start_gap'][k[:-4] + '_other']:.2f}"
                                                     for k, v in ev["start_gap"].items() if k.endswith("_own")), flush=True)
         out_of_time = args.max_minutes is not None and time.time() - started > 60 * args.max_minutes

@@ -51,6 +51,10 @@ def test_top_block_conditions_have_no_target_and_keep_the_other_blocks_statistic
     gaps = bench.start_gaps_to_conditions(starts, starts, starts)
     assert gaps["z_own"] == 0.0 and gaps["object_cm_own"] == 0.0 and gaps["object_cm_other"] > 1.0
     assert gaps["goal_cm_other"] == 0.0  # one goal
+    # the trajectory gap: a copy is 0 from its own condition and about 2 from the others (unit-variance dims)
+    copy = bench.trajectory_gaps_to_conditions(diffuser, trajs[:8], trajs[:8])
+    assert copy["own"] == 0.0 and 1.0 < copy["other"] < 4.0, copy
+    assert top["trajectory_gap"]["own"] > 0.0 and top["trajectory_gap"]["other"] > 0.0
     for k in ("1", "2", "3"):  # the same conditions and targets for the blocks the pairs use
         for field in ("condition_score", "target_block_score", "condition_true_return", "target_block_true_return"):
             assert top["per_condition_block"][k][field] == pytest.approx(base["per_condition_block"][k][field])
