@@ -231,3 +231,20 @@ def test_coarsen_round_trip_reads_returns_per_block():
     assert out["1"]["before"] == 2.0 and out["1"]["after"] == 1.0 and out["1"]["kept"] == 0.5
     assert out["2"]["max_before"] == 30.0 and out["2"]["max_after"] == 20.0 and out["2"]["n"] == 2
     assert out["all"]["kept"] == pytest.approx(32.0 / 44.0)
+
+
+@pytest.mark.parametrize("prediction_type,factor", [("epsilon", lambda a: (1 - a) / a), ("v_prediction", lambda a: 1 - a)])
+def test_condition_use_reads_each_condition_and_the_x0_error_it_implies(prediction_type, factor):
+    """bench/condition_use.py: per t, the error with the own, a rolled and the null condition; the implied x0
+    error is the eps error times (1 - abar) / abar, the v error times (1 - abar)."""
+    bench = load_script(ROOT / "bench" / "condition_use.py", "bench_condition_use")
+    data = make_toy_dataset(num_trajectories=12, horizon=8, seed=0)
+    diffuser = make_diffuser("tiny", obs_dim=data["observation"].shape[-1], action_dim=data["action"].shape[-1],
+                             horizon=8, data=data, prediction_type=prediction_type, hidden_dim=16, cond_dim=16)
+    diffuser.update_ema()
+    out = bench.condition_use(diffuser, data, timesteps=(10, 900))
+    assert list(out) == ["10", "900"]
+    for row in out.values():
+        for name in ("own", "shuffled", "null"):
+            assert row[f"{name}_x0"] == pytest.approx(row[name] * factor(row["abar"]), rel=1e-3)
+        assert row["own"] != row["shuffled"]  # the condition reaches the output
