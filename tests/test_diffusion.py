@@ -206,6 +206,18 @@ def test_sample_prediction_is_the_same_model_seen_through_x0(sampler):
         DiffusionProcess(prediction_type="velocity")
 
 
+def _trains_and_survives_save_load(d, batch, data, tmp_path):
+    """A few finite training steps; the saved diffuser loads with its prediction type and samples alike."""
+    out = train_diffuser(d, lambda: batch, steps=3, lr=1e-2, progress=False)
+    assert all(map(math.isfinite, out["losses"]))
+    d2 = load_diffuser(save_diffuser(d, tmp_path / "d.pt"))
+    assert d2.process.prediction_type == d.process.prediction_type
+    module = dict(sampler="ddpm", steps=4, seed=3)
+    a = DiffusionSampler(d, **module)(TensorDict({"condition": data[:4]}, batch_size=[4]))["sample"]
+    b = DiffusionSampler(d2, **module)(TensorDict({"condition": data[:4]}, batch_size=[4]))["sample"]
+    assert torch.equal(a["observation"], b["observation"])
+
+
 def test_sample_prediction_trains_on_x0_and_survives_save_load(data, tmp_path):
     d = make_diffuser("tiny", obs_dim=3, action_dim=2, horizon=H, prediction_type="sample").fit_normalizer(data)
     assert d.process.prediction_type == "sample"
@@ -220,14 +232,7 @@ def test_sample_prediction_trains_on_x0_and_survives_save_load(data, tmp_path):
     d_eps.backbone.forward = lambda x_t, t, *args, **kwargs: x0
     assert float(DiffusionLoss(d_eps)(batch)["loss_diffusion"]) > 0.1
     del backbone.forward
-    out = train_diffuser(d, lambda: batch, steps=3, lr=1e-2, progress=False)
-    assert all(map(math.isfinite, out["losses"]))
-    d2 = load_diffuser(save_diffuser(d, tmp_path / "d.pt"))
-    assert d2.process.prediction_type == "sample"
-    module = dict(sampler="ddpm", steps=4, seed=3)
-    a = DiffusionSampler(d, **module)(TensorDict({"condition": data[:4]}, batch_size=[4]))["sample"]
-    b = DiffusionSampler(d2, **module)(TensorDict({"condition": data[:4]}, batch_size=[4]))["sample"]
-    assert torch.equal(a["observation"], b["observation"])
+    _trains_and_survives_save_load(d, batch, data, tmp_path)
 
 
 def test_v_prediction_trains_on_the_velocity_and_survives_save_load(data, tmp_path):
@@ -242,14 +247,7 @@ def test_v_prediction_trains_on_the_velocity_and_survives_save_load(data, tmp_pa
         model.backbone.forward = lambda x_t, t, *args, **kwargs: -x0
         assert (float(DiffusionLoss(model)(batch)["loss_diffusion"]) < 1e-6) is low
         del model.process.sample_timesteps, model.backbone.forward
-    out = train_diffuser(d, lambda: batch, steps=3, lr=1e-2, progress=False)
-    assert all(map(math.isfinite, out["losses"]))
-    d2 = load_diffuser(save_diffuser(d, tmp_path / "d.pt"))
-    assert d2.process.prediction_type == "v_prediction"
-    module = dict(sampler="ddpm", steps=4, seed=3)
-    a = DiffusionSampler(d, **module)(TensorDict({"condition": data[:4]}, batch_size=[4]))["sample"]
-    b = DiffusionSampler(d2, **module)(TensorDict({"condition": data[:4]}, batch_size=[4]))["sample"]
-    assert torch.equal(a["observation"], b["observation"])
+    _trains_and_survives_save_load(d, batch, data, tmp_path)
 
 
 @pytest.mark.parametrize("sampler,steps", [("ddpm", 25), ("ddim", 20), ("dpm++", 20)])
