@@ -24,7 +24,10 @@ own round trip (``bench/coarsen_round_trip.py`` measures what a round trip keeps
 trains the fresh diffuser only on the pairs into the top blocks (``BlockPairSampler(block_weights=...)``);
 ``--hold`` trains and conditions it on trajectories held at their last step to the full horizon
 (:func:`~torchrl_ftb.data.hold_last_step`: nothing padded, so no length to generate; every length then reads
-the horizon) and cuts its samples by the ``--streak`` stop rule. Both are locked to the work dir's checkpoint. JSON to
+the horizon) and cuts its samples by the ``--streak`` stop rule; ``--pair-neighbours M`` pairs each condition with
+one of the M next-block trajectories that start nearest to it. All three are locked to the work dir's checkpoint.
+Every evaluation also gives the *trajectory gap*: each sample's mean squared distance to its own condition against
+the others', in the diffuser's normalised space (0: a copy). JSON to
 ``bench/results/diffuser_conditioning/<task>-<run>-<tag>.json`` after every evaluation
 (partial results survive a kill). ``--device cuda --autocast-bf16 --max-minutes M`` is the
 GPU check (paper preset) that decides whether our CPU-budget findings are about the budget.

@@ -17,11 +17,12 @@ steps (BENCHMARKS, "Does the diffuser follow its condition?"). Decision Diffuser
 on returns the same way. The null condition carries no score.
 
 ``linear_skip=True`` adds a pointwise linear map of the (masked, normalised) condition to the
-embedding, beside the convolutional path. Written here because no encoder we could reuse has it,
-and it is a fix, not a variant: each convolutional block ends in a GroupNorm over the whole
-horizon, which removes every trajectory's own level and scale per channel group, so what is
-constant along a trajectory (an object's or goal's position) and how far a channel moves reach
-the backbone only in part. The skip hands them on unnormalised.
+embedding, beside the convolutional path (written here: no encoder we could reuse has it). Each
+convolutional block ends in a GroupNorm over the whole horizon, which removes every trajectory's
+own level and scale per channel group, so what is constant along a trajectory (an object's or
+goal's position) and how far a channel moves reach the backbone only in part; the skip hands them
+on unnormalised. Measured on Meta-World's copy task it changed little: what kept the condition out
+of the samples was the epsilon loss at high noise (BENCHMARKS, "v prediction").
 
 Example:
     >>> import torch
