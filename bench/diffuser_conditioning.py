@@ -149,8 +149,8 @@ def trajectory_gaps_to_conditions(diffuser, sample, conditions) -> dict[str, flo
     resolution? The mean squared difference per step and diffused dimension over the steps both have, to its own
     condition (``own``) and, averaged, to every other one (``other``). A copy is ``own`` ~ 0; a sample that
     ignores its condition has ``own`` ~ ``other``; two independent data trajectories are ~ 2 apart."""
-    z_s = diffuser.model_input(diffuser.raw_data_from_td(sample), sample["mask"].bool())[..., :-1].double()
-    z_c = diffuser.model_input(diffuser.raw_data_from_td(conditions), conditions["mask"].bool())[..., :-1].double()
+    z_s = diffuser.condition_input(diffuser.raw_data_from_td(sample), sample["mask"]).double()
+    z_c = diffuser.condition_input(diffuser.raw_data_from_td(conditions), conditions["mask"]).double()
     both = (sample["mask"].bool()[:, None] & conditions["mask"].bool()[None]).double()  # [n samples, n conds, H]
     sq = ((z_s[:, None] - z_c[None]) ** 2).mean(-1)  # [n, n, H]
     dist = (sq * both).sum(-1) / both.sum(-1).clamp(min=1)

@@ -433,6 +433,10 @@ def hold_last_step(td: TensorDictBase, *, zero: Sequence[str] = ("action",)) -> 
         ([0.0, 1.0, 1.0, 1.0], [1.0, 1.0, 0.0, 0.0], True)
     """
     mask = td.get("mask").bool()
+    kept = td.exclude("mask")
+    missing = [key for key in zero if key not in kept.keys(True)]
+    if missing:
+        raise ValueError(f"hold_last_step: zero={list(zero)} names keys the batch does not have: {missing}")
     lengths = mask.sum(-1, keepdim=True)  # [N, 1]
     if bool((lengths == 0).any()):
         raise ValueError(f"hold_last_step: trajectories {torch.nonzero(lengths[:, 0] == 0).flatten().tolist()[:10]} "
@@ -440,11 +444,8 @@ def hold_last_step(td: TensorDictBase, *, zero: Sequence[str] = ("action",)) -> 
     n, horizon = mask.shape
     t = torch.arange(horizon, device=mask.device).unsqueeze(0).expand(n, -1)
     steps = torch.minimum(t, lengths - 1)  # [N, H]: the step each time repeats
-    out = td.exclude("mask").apply(lambda value: _at_steps(value, steps), batch_size=[n, horizon])
+    out = kept.apply(lambda value: _at_steps(value, steps), batch_size=[n, horizon])
     held = t >= lengths
-    missing = [key for key in zero if key not in out.keys(True)]
-    if missing:
-        raise ValueError(f"hold_last_step: zero={list(zero)} names keys the batch does not have: {missing}")
     for key in zero:
         value = out.get(key)
         out.set(key, value * ~held.reshape(*held.shape, *([1] * (value.dim() - 2))))
