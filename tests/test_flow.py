@@ -312,6 +312,17 @@ def test_stop_rule_cut_scores_a_sample_as_if_its_episode_had_stopped():
     with pytest.raises(ValueError, match="true_return_streak needs a true_return_horizon"):
         FlowToBetter(_shift_sampler(0.2), _sum_ax, top_k=8, flow_steps=1, true_reward_fn=toy_with_success,
                      true_return_streak=3)
+    # each column's gain of the accepted samples over what they replaced: one step, so each sample's own
+    # condition, the original with the same observations (the stand-in sampler moves only actions)
+    gen, orig = res.generated, res.original
+    assert gen.batch_size[0] > 0
+    slot = [int((orig["observation"] == g).flatten(1).all(1).nonzero()[0]) for g in gen["observation"]]
+    cols = dict(horizons=(None, 2 * H, 2 * H), streaks=(None, None, 3))
+    gain = masked_true_returns(gen, toy_with_success, **cols) - masked_true_returns(orig[slot], toy_with_success, **cols)
+    for j, key in enumerate(["accepted_true_gain", "accepted_true_return_filled_gain",
+                             "accepted_true_return_filled_stop_rule_gain"]):
+        assert res.stats[0][f"{key}_mean"] == pytest.approx(float(gain[:, j].mean()))
+        assert res.stats[0][f"{key}_positive"] == pytest.approx(float((gain[:, j] > 0).double().mean()))
 
 
 def test_flow_reports_the_filled_true_return_beside_the_plain_one():

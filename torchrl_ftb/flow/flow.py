@@ -295,6 +295,27 @@ def return_summary(before: torch.Tensor, after: torch.Tensor, *, prefix: str = "
             f"{prefix}_mean_after": float(after.mean()), f"{prefix}_max_after": float(after.max())}
 
 
+def accepted_gain_stats(gain: torch.Tensor, names: list[str]) -> dict[str, float]:
+    """Mean and positive share of the accepted samples' true-return gains over what they replaced.
+
+    ``gain`` is ``[M, D]``, one column per return definition in ``names``. The first column (the
+    plain sum) keeps its historical keys ``accepted_true_gain_{mean,positive}``; the others are
+    ``accepted_<name>_gain_{mean,positive}`` (on Meta-World the plain sum pays length, so a sample
+    that turns a fast success into a 500-step one shows a plain gain and a stop-rule loss).
+
+    Example:
+        >>> stats = accepted_gain_stats(torch.tensor([[2.0, -1.0], [4.0, 3.0]]), ["true_return", "true_return_filled"])
+        >>> stats["accepted_true_gain_mean"], stats["accepted_true_return_filled_gain_positive"]
+        (3.0, 0.5)
+    """
+    out: dict[str, float] = {}
+    for j, name in enumerate(names):
+        key = "accepted_true_gain" if j == 0 else f"accepted_{name}_gain"
+        out[f"{key}_mean"] = float(gain[:, j].mean())
+        out[f"{key}_positive"] = float((gain[:, j] > 0).double().mean())
+    return out
+
+
 @dataclass
 class FlowResult:
     """Output of :class:`FlowToBetter`.
@@ -696,7 +717,7 @@ class FlowToBetter(nn.Module):
                     cur_members[:, accept] = new_members[:, accept]
                     if cur_true is not None:  # only the replaced trajectories need the (costly) oracle
                         new_true = self._true_return(accepted)
-                        true_gain = new_true[:, 0] - cur_true[accept][:, 0]
+                        true_gain = new_true - cur_true[accept]  # [M, D]: each column's gain
                         cur_true[accept] = new_true
                         pool_true.append(new_true)
                     pool.append(accepted)
@@ -721,8 +742,7 @@ class FlowToBetter(nn.Module):
                         row.update({f"{name}_mean": float(cur_true[:, j].mean()),
                                     f"{name}_max": float(cur_true[:, j].max())})
                     if true_gain is not None:  # did the accepted samples beat what they replaced?
-                        row.update(accepted_true_gain_mean=float(true_gain.mean()),
-                                   accepted_true_gain_positive=float((true_gain > 0).double().mean()))
+                        row.update(accepted_gain_stats(true_gain, [name for name, _, _ in self._true_columns]))
                 stats.append(row)
                 bar.set_postfix(accept=f"{row['accept_rate']:.2f}", score=f"{row['score_mean']:.3g}")
                 if self.logger is not None:
