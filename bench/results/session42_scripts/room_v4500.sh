@@ -2,7 +2,7 @@
 # (drawer-open: stopped to free the core for sweep-into's chain). usage: bash room_v4500.sh TASK NOISE
 T=$1; N=$2; R=/work/runs/room_s42; S=4
 C="--config-name ftb_offline_metaworld labels.horizon=500 env.name=$T seed=$S dataset.noise=$N"
-C="$C dataset.groups=[expert,within,random] progress=false eval.num_episodes=50  # as room_more.sh left the v run"
+C="$C dataset.groups=[expert,within,random] progress=false eval.num_episodes=50"  # as room_more.sh left the v run
 V="diffuser.overrides={prediction_type:v_prediction}"
 export OMP_NUM_THREADS=1
 rm -rf $R/${T}_v4500 && cp -r $R/${T}_v $R/${T}_v4500
