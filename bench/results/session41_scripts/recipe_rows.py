@@ -28,7 +28,7 @@ for arg in sys.argv[1:]:
         row += [pair(rep["true_return_mean_before"], rep["true_return_mean_after"]),
                 pair(rep["true_return_max_before"], rep["true_return_max_after"]),
                 f"{ol['claimed_stop_rule_mean_generated']:.0f} → {ol['replayed_stop_rule_mean_generated']:.0f}"
-                f" ({ol['replay_success_rate']:.2g})"]
+                f" ({ol['replay_success_rate']:.2g})" if ol.get("num_generated") else "— (none generated)"]
     else:
         row += ["—"] * 3
     row.append(f"{d['score']:.2f}")
