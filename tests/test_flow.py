@@ -1,6 +1,7 @@
 """Tests of torchrl_ftb.flow (FlowToBetter, Alg. 4) and torchrl_ftb.analysis."""
 from __future__ import annotations
 
+import functools
 import warnings
 
 import pytest
@@ -318,7 +319,8 @@ def test_stop_rule_cut_scores_a_sample_as_if_its_episode_had_stopped():
     assert gen.batch_size[0] > 0
     slot = [int((orig["observation"] == g).flatten(1).all(1).nonzero()[0]) for g in gen["observation"]]
     cols = dict(horizons=(None, 2 * H, 2 * H), streaks=(None, None, 3))
-    gain = masked_true_returns(gen, toy_with_success, **cols) - masked_true_returns(orig[slot], toy_with_success, **cols)
+    true_of = functools.partial(masked_true_returns, true_reward_fn=toy_with_success, **cols)
+    gain = true_of(gen) - true_of(orig[slot])
     for j, key in enumerate(["accepted_true_gain", "accepted_true_return_filled_gain",
                              "accepted_true_return_filled_stop_rule_gain"]):
         assert res.stats[0][f"{key}_mean"] == pytest.approx(float(gain[:, j].mean()))

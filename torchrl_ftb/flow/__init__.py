@@ -2,6 +2,7 @@
 from torchrl_ftb.flow.flow import (
     FlowResult,
     FlowToBetter,
+    accepted_gain_stats,
     adaptive_flow_steps,
     check_flow_options,
     clip_actions,
@@ -18,6 +19,7 @@ from torchrl_ftb.flow.flow import (
 __all__ = [
     "FlowResult",
     "FlowToBetter",
+    "accepted_gain_stats",
     "adaptive_flow_steps",
     "check_flow_options",
     "clip_actions",
