@@ -41,7 +41,9 @@ Presets differ only in numbers:
   with its condition than without (the eps loss barely sees it there), so the sampler's first steps ignore the
   condition; with v the copy task is learned (samples 0.10 from their condition in z-space against 1.19 for eps) and,
   on FTB's pairs, the samples' score follows the condition's block (Spearman +0.44 at 1,500 steps against +0.21).
-  Default stays ``"epsilon"`` (the paper's): on the recipe v did not raise the flow's stop-rule mean or max.
+  Default stays ``"epsilon"`` (the paper's): on the IPL-recipe data v did not raise the flow's stop-rule mean or
+  max; on data with room above the top-k it raised the means more than eps (one seed; BENCHMARKS "v prediction on
+  data with room").
   Why DDPM and not DPM-Solver++/DDIM by default: on the toy task a briefly trained model
   sampled with the deterministic solvers gave clearly worse trajectories (toy, 400 steps:
   block-0 conditions -> mean true return -3.0 with DPM++ 25 / DDIM 25 vs -1.4 with DDPM 50,
