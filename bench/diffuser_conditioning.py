@@ -38,6 +38,7 @@ Usage::
     python bench/diffuser_conditioning.py --run-dir RUN --preset paper --steps 20000 --eval-every 2000 \
         --device cuda --autocast-bf16 --max-minutes 7 --tag paper-gpu
     python bench/diffuser_conditioning.py --summarize bench/results/diffuser_conditioning/*.json
+    python bench/diffuser_conditioning.py --summarize A.json --plot conditioning.png   # and a plot of A
 """
 from __future__ import annotations
 
@@ -220,6 +221,39 @@ def summarize(paths: list[Path]) -> str:
     return "\n".join(rows)
 
 
+def plot_conditioning(paths: list[Path], out: Path) -> Path:
+    """One panel per results file: each condition block's mean sample true return against the diffuser's training
+    step (solid), beside the mean true return of the block's conditions (dotted) and of the block the pairs taught
+    it to reach (dashed; the top block has none). A diffuser that follows its condition lifts every solid line to
+    its dashed one; the flow's maximum can rise only where a top-block line passes its dotted one."""
+    import matplotlib.pyplot as plt
+
+    from torchrl_ftb.analysis import save_figure
+
+    records = [json.loads(Path(p).read_text()) for p in paths]
+    for path, rec in zip(paths, records):
+        evs = rec.get("evaluations") or []
+        if not evs or "sample_true_return" not in next(iter(evs[0]["per_condition_block"].values()), {}):
+            raise ValueError(f"{path}: no evaluation with true returns to plot (run the bench with a reward oracle)")
+    fig, axes = plt.subplots(1, len(records), figsize=(5.0 * len(records), 3.6), squeeze=False)
+    for ax, path, rec in zip(axes[0], paths, records):
+        evs = rec["evaluations"]
+        steps = [ev["step"] for ev in evs]
+        for i, block in enumerate(evs[-1]["per_condition_block"]):
+            color = f"C{i}"
+            rows = [ev["per_condition_block"][block] for ev in evs]
+            ax.plot(steps, [r["sample_true_return"] for r in rows], "o-", color=color, label=f"B{block} samples")
+            ax.axhline(rows[-1]["condition_true_return"], color=color, ls=":", lw=1)
+            if rows[-1]["target_block_true_return"] is not None:
+                ax.axhline(rows[-1]["target_block_true_return"], color=color, ls="--", lw=1)
+        ax.set_title(Path(path).stem, fontsize=8)
+        ax.set_xlabel("diffuser training step")
+        ax.set_ylabel("true return (mean over the block's conditions)")
+    axes[0][-1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.0),
+                       title="dotted: conditions, dashed: target block", title_fontsize=7)
+    return save_figure(fig, out)
+
+
 def main() -> None:
     parser = run_parser(__doc__)
     parser.add_argument("--steps", type=int, help="total diffuser steps to train up to")
@@ -262,9 +296,13 @@ def main() -> None:
     parser.add_argument("--autocast-bf16", action="store_true", help="bf16 autocast in training and sampling")
     parser.add_argument("--max-minutes", type=float, default=None,
                         help="stop training after this much wall time (evaluates once more, then exits)")
-    args = parse_run_args(parser, summarize)
+    parser.add_argument("--plot", type=Path, default=None,
+                        help="with --summarize: also plot the files' sample true return per block (PNG)")
+    args = parse_run_args(parser, summarize, plot_conditioning)
     if args is None:
         return
+    if args.plot is not None:
+        parser.error("--plot goes with --summarize FILES (it plots saved results)")
     if args.steps is None:
         parser.error("--steps is required with --run-dir")
     if args.stride > 1 and args.preset is None:

@@ -132,12 +132,17 @@ def run_parser(doc: str) -> argparse.ArgumentParser:
     return parser
 
 
-def parse_run_args(parser: argparse.ArgumentParser, summarize_fn) -> argparse.Namespace | None:
-    """Parse; with ``--summarize`` print ``summarize_fn(files)`` and return None, else require
-    ``--run-dir`` and set the torch threads."""
+def parse_run_args(parser: argparse.ArgumentParser, summarize_fn, plot_fn=None) -> argparse.Namespace | None:
+    """Parse; with ``--summarize`` print ``summarize_fn(files)`` (and, given ``plot_fn`` and ``--plot PNG``, write
+    ``plot_fn(files, PNG)``) and return None, else require ``--run-dir`` and set the torch threads."""
     args = parser.parse_args()
     if args.summarize:
         print(summarize_fn(args.summarize))
+        if plot_fn is not None and getattr(args, "plot", None) is not None:
+            try:
+                print(plot_fn(args.summarize, args.plot))
+            except ValueError as err:
+                parser.error(f"--plot: {err}")
         return None
     if args.run_dir is None:
         parser.error("--run-dir is required (or --summarize FILES)")

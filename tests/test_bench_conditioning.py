@@ -248,3 +248,24 @@ def test_condition_use_reads_each_condition_and_the_x0_error_it_implies(predicti
         for name in ("own", "shuffled", "null"):
             assert row[f"{name}_x0"] == pytest.approx(row[name] * factor(row["abar"]), rel=1e-3)
         assert row["own"] != row["shuffled"]  # the condition reaches the output
+
+
+def test_plot_conditioning_draws_saved_results_and_names_a_file_without_true_returns(tmp_path):
+    bench = load_script(ROOT / "bench" / "diffuser_conditioning.py", "bench_diffuser_conditioning")
+
+    def block(sample, condition, target):
+        return {"sample_score": 0.0, "target_block_score": None if target is None else 1.0,
+                "sample_true_return": sample, "condition_true_return": condition, "target_block_true_return": target}
+
+    evs = [{"step": s, "per_condition_block": {"1": block(10.0 + s, 5.0, 20.0), "2": block(15.0, 20.0, None)}}
+           for s in (1500, 3000)]
+    good = tmp_path / "good.json"
+    good.write_text(json.dumps({"evaluations": evs}))
+    out = bench.plot_conditioning([good], tmp_path / "plots" / "c.png")
+    assert out == tmp_path / "plots" / "c.png" and out.stat().st_size > 1000
+    assert not list((tmp_path / "plots").glob(".*"))  # atomic write: no temp file left
+    bare = tmp_path / "bare.json"  # a run without a reward oracle has no true returns
+    bare.write_text(json.dumps({"evaluations": [{"step": 1500, "per_condition_block": {"1": {"sample_score": 0.0}}}]}))
+    with pytest.raises(ValueError, match="bare.json: no evaluation with true returns"):
+        bench.plot_conditioning([good, bare], tmp_path / "x.png")
+    assert not (tmp_path / "x.png").exists()
