@@ -44,7 +44,7 @@ Presets differ only in numbers:
   Default stays ``"epsilon"`` (the paper's): on the IPL-recipe data v did not raise the flow's stop-rule mean or
   max; on data with room above the top-k it raised the means more than eps (one seed; BENCHMARKS "v prediction on
   data with room"), and on more seeds it raised the means and no max (BENCHMARKS "v prediction on more seeds": its
-  top-block samples stay at about half their conditions' return up to 9,000 steps).
+  top-block samples stay under their conditions' return: about half on drawer-open up to 9,000 steps).
   Why DDPM and not DPM-Solver++/DDIM by default: on the toy task a briefly trained model
   sampled with the deterministic solvers gave clearly worse trajectories (toy, 400 steps:
   block-0 conditions -> mean true return -3.0 with DPM++ 25 / DDIM 25 vs -1.4 with DDPM 50,
