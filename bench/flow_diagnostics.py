@@ -26,6 +26,7 @@ import json
 import sys
 import time
 from pathlib import Path
+from typing import Callable
 
 import torch
 from omegaconf import OmegaConf
@@ -132,7 +133,8 @@ def run_parser(doc: str) -> argparse.ArgumentParser:
     return parser
 
 
-def parse_run_args(parser: argparse.ArgumentParser, summarize_fn, plot_fn=None) -> argparse.Namespace | None:
+def parse_run_args(parser: argparse.ArgumentParser, summarize_fn: Callable[[list[Path]], str],
+                   plot_fn: Callable[[list[Path], Path], Path] | None = None) -> argparse.Namespace | None:
     """Parse; with ``--summarize`` print ``summarize_fn(files)`` (and, given ``plot_fn`` and ``--plot PNG``, write
     ``plot_fn(files, PNG)``) and return None, else require ``--run-dir`` and set the torch threads."""
     args = parser.parse_args()
