@@ -75,12 +75,14 @@ from torchrl_ftb.provenance import run_record, write_json  # noqa: E402
 def evaluate(diffuser, model, trajs, scores, ids, *, per_block: int, sampler: str, steps: int, guidance: float,
              seed: int, returns: torch.Tensor | None = None, reward_fn=None, autocast_bf16: bool = False,
              top_block: bool = False, horizon: int | None = None, streak: int | None = None,
-             stride: int = 1) -> dict:
+             stride: int = 1, strength: float = 1.0, inpaint_start: bool = False) -> dict:
     """Condition-following statistics of one model state (see module docstring).
 
     ``top_block=True`` also conditions on the top block, which the pairs never use as a condition
     (no block above it): the flow's top-k come from there. Its entry has no target block (None);
-    the correlations are over the other blocks' conditions, as without it.
+    the correlations are over the other blocks' conditions, as without it. ``strength < 1`` samples SDEdit
+    edits of each condition and ``inpaint_start`` holds each sample's first observation at its condition's,
+    as the recipe's ``diffuser.strength`` / ``diffuser.inpaint_start`` do in the flow.
     """
     gen = torch.Generator().manual_seed(seed)
     num_blocks = int(ids.max()) + 1
@@ -96,8 +98,10 @@ def evaluate(diffuser, model, trajs, scores, ids, *, per_block: int, sampler: st
     conditions = trajs[idx]
     full_horizon = trajs.batch_size[1]
     cond = coarsen_trajectories(conditions, stride) if stride > 1 else conditions  # what the model is given
+    edit = strength < 1.0 or inpaint_start  # the flow's options: the condition is also the init
     sample = diffuser.generate(cond, sampler=sampler, steps=steps, guidance=guidance, generator=gen,
-                               autocast_bf16=autocast_bf16).to("cpu")
+                               autocast_bf16=autocast_bf16, init=cond if edit else None, strength=strength,
+                               inpaint_start=inpaint_start).to("cpu")
     gap = trajectory_gaps_to_conditions(diffuser, sample, cond.to("cpu"))
     round_trip = None
     if stride > 1:
@@ -196,29 +200,38 @@ def summarize(paths: list[Path]) -> str:
     ``--top-block`` files the share of top-block samples above their own condition and the samples' max."""
     rows = []
     for path in paths:
-        rec = json.loads(path.read_text())
-        for ev in rec["evaluations"]:
-            per = ev["per_condition_block"]
-            if not rows:
-                rows = ["| file | diffuser steps | Spearman(condition block, sample score / true return) | "
-                        + " | ".join(f"B{k} → sample score (B{int(k) + 1} mean); true return"
-                                     if v["target_block_score"] is not None else f"B{k} (top: no target) → sample"
-                                     for k, v in per.items()) + " |",
-                        "|---|---|---|" + "---|" * len(per)]
-            true_rho = ev.get("spearman_sample_true_return_vs_condition_block")
-            rows.append(f"| {path.stem} | {ev['step']} | {ev['spearman_sample_score_vs_condition_block']:+.2f} / "
-                        + ("—" if true_rho is None else f"{true_rho:+.2f}") + " | "
-                        + " | ".join(f"{v['sample_score']:.0f} ({_num(v['target_block_score'])})"
-                                     + (f"; {v['sample_true_return']:.0f} ({_num(v['target_block_true_return'])})"
-                                        if "sample_true_return" in v else "")
-                                     + (f"; conditions' round trip {v['condition_round_trip_true_return']:.0f}"
-                                        if "condition_round_trip_true_return" in v else "")
-                                     + (f"; above own condition {v['samples_above_condition']:.0%}, max "
-                                        f"{v['sample_true_return_max']:.0f} (conditions' {v['condition_true_return_max']:.0f})"
-                                        if v["target_block_score"] is None and "samples_above_condition" in v else "")
-                                     for v in per.values())
-                        + " |")
+        try:
+            rows += _summary_rows(path, json.loads(Path(path).read_text()), header=not rows)
+        except (KeyError, TypeError, AttributeError, json.JSONDecodeError) as err:
+            raise ValueError(f"{path}: not a diffuser_conditioning results file ({type(err).__name__}: {err})") from None
     return "\n".join(rows)
+
+
+def _summary_rows(path: Path, rec: dict, *, header: bool) -> list[str]:
+    """:func:`summarize`'s rows of one results file (with the table's header when ``header``)."""
+    rows = []
+    for ev in rec["evaluations"]:
+        per = ev["per_condition_block"]
+        if header and not rows:
+            rows = ["| file | diffuser steps | Spearman(condition block, sample score / true return) | "
+                    + " | ".join(f"B{k} → sample score (B{int(k) + 1} mean); true return"
+                                 if v["target_block_score"] is not None else f"B{k} (top: no target) → sample"
+                                 for k, v in per.items()) + " |",
+                    "|---|---|---|" + "---|" * len(per)]
+        true_rho = ev.get("spearman_sample_true_return_vs_condition_block")
+        rows.append(f"| {path.stem} | {ev['step']} | {ev['spearman_sample_score_vs_condition_block']:+.2f} / "
+                    + ("—" if true_rho is None else f"{true_rho:+.2f}") + " | "
+                    + " | ".join(f"{v['sample_score']:.0f} ({_num(v['target_block_score'])})"
+                                 + (f"; {v['sample_true_return']:.0f} ({_num(v['target_block_true_return'])})"
+                                    if "sample_true_return" in v else "")
+                                 + (f"; conditions' round trip {v['condition_round_trip_true_return']:.0f}"
+                                    if "condition_round_trip_true_return" in v else "")
+                                 + (f"; above own condition {v['samples_above_condition']:.0%}, max "
+                                    f"{v['sample_true_return_max']:.0f} (conditions' {v['condition_true_return_max']:.0f})"
+                                    if v["target_block_score"] is None and "samples_above_condition" in v else "")
+                                 for v in per.values())
+                    + " |")
+    return rows
 
 
 def plot_conditioning(paths: list[Path], out: Path) -> Path:
@@ -268,6 +281,10 @@ def main() -> None:
     parser.add_argument("--sampler", default=None)
     parser.add_argument("--sample-steps", type=int, default=None)
     parser.add_argument("--guidance", type=float, default=None)
+    parser.add_argument("--strength", type=float, default=1.0,
+                        help="< 1: sample SDEdit edits of each condition (the recipe's diffuser.strength)")
+    parser.add_argument("--inpaint-start", action="store_true",
+                        help="hold each sample's first observation at its condition's (diffuser.inpaint_start)")
     parser.add_argument("--work-dir", type=Path, default=None,
                         help="default: <run-dir>/conditioning_bench[_<preset>]")
     parser.add_argument("--preset", default=None,
@@ -305,6 +322,11 @@ def main() -> None:
         parser.error("--plot goes with --summarize FILES (it plots saved results)")
     if args.steps is None:
         parser.error("--steps is required with --run-dir")
+    if not 0.0 < args.strength <= 1.0:
+        parser.error(f"--strength must be in (0, 1], got {args.strength}")
+    if args.stride > 1 and (args.strength < 1.0 or args.inpaint_start):
+        parser.error("--strength < 1 and --inpaint-start edit the condition at the model's own resolution; "
+                     "not with --stride")
     if args.stride > 1 and args.preset is None:
         parser.error("--stride needs --preset (a fresh diffuser on the coarsened trajectories)")
     if args.override and args.preset is None:
@@ -415,7 +437,8 @@ def main() -> None:
         ev = evaluate(diffuser, model, trajs, scores, ids, per_block=args.per_block, sampler=sampler,
                       steps=int(sample_steps), guidance=float(guidance), seed=int(cfg.seed), returns=returns,
                       reward_fn=reward_fn, autocast_bf16=args.autocast_bf16, top_block=args.top_block,
-                      horizon=args.horizon, streak=args.streak, stride=args.stride)
+                      horizon=args.horizon, streak=args.streak, stride=args.stride, strength=args.strength,
+                      inpaint_start=args.inpaint_start)
         ev.update(step=step, eval_seconds=round(time.time() - t0, 1))
         record["evaluations"].append(ev)
         write_json(out, record)

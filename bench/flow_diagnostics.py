@@ -139,7 +139,10 @@ def parse_run_args(parser: argparse.ArgumentParser, summarize_fn: Callable[[list
     ``plot_fn(files, PNG)``) and return None, else require ``--run-dir`` and set the torch threads."""
     args = parser.parse_args()
     if args.summarize:
-        print(summarize_fn(args.summarize))
+        try:
+            print(summarize_fn(args.summarize))
+        except ValueError as err:  # a file that is not this bench's results: its name, not a traceback
+            parser.error(f"--summarize: {err}")
         if plot_fn is not None and getattr(args, "plot", None) is not None:
             try:
                 print(plot_fn(args.summarize, args.plot))

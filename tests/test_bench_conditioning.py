@@ -269,3 +269,32 @@ def test_plot_conditioning_draws_saved_results_and_names_a_file_without_true_ret
     with pytest.raises(ValueError, match="bare.json: no evaluation with true returns"):
         bench.plot_conditioning([good, bare], tmp_path / "x.png")
     assert not (tmp_path / "x.png").exists()
+
+
+def test_edits_of_the_condition_stay_near_it_and_inpainting_holds_its_start():
+    """--strength < 1 samples SDEdit edits of each condition, --inpaint-start holds each sample's first
+    observation at its condition's: the flow's diffuser.strength / diffuser.inpaint_start, read by the bench."""
+    bench = load_script(ROOT / "bench" / "diffuser_conditioning.py", "bench_diffuser_conditioning_edit")
+    trajs, returns, ids, diffuser, model = _toy_run()
+    kw = dict(per_block=3, sampler="ddim", steps=10, guidance=1.2, seed=0, returns=returns, reward_fn=toy_reward,
+              top_block=True)
+    fresh = bench.evaluate(diffuser, model, trajs, returns, ids, **kw)
+    edit = bench.evaluate(diffuser, model, trajs, returns, ids, strength=0.1, **kw)
+    held = bench.evaluate(diffuser, model, trajs, returns, ids, inpaint_start=True, **kw)
+    # an untrained model's fresh samples are far from every condition; a light edit stays by its own
+    assert edit["trajectory_gap"]["own"] < 0.25 * edit["trajectory_gap"]["other"], edit["trajectory_gap"]
+    assert fresh["trajectory_gap"]["own"] > 0.5 * fresh["trajectory_gap"]["other"], fresh["trajectory_gap"]
+    assert held["start_gap"]["z_own"] == pytest.approx(0.0, abs=1e-5)
+    assert fresh["start_gap"]["z_own"] > 0.1
+
+
+def test_summarize_names_a_file_that_is_not_a_conditioning_result(tmp_path):
+    bench = load_script(ROOT / "bench" / "diffuser_conditioning.py", "bench_diffuser_conditioning_bad")
+    bad = tmp_path / "other-bench.json"
+    bad.write_text(json.dumps({"evaluations": [{"step": 0}]}))  # no per-block statistics
+    with pytest.raises(ValueError, match="other-bench.json: not a diffuser_conditioning results file"):
+        bench.summarize([bad])
+    broken = tmp_path / "cut.json"
+    broken.write_text('{"evaluations": [')  # a write cut short
+    with pytest.raises(ValueError, match="cut.json: not a diffuser_conditioning results file"):
+        bench.summarize([broken])
