@@ -14,7 +14,8 @@ pairs taught it to produce (k + 1), and the mean generated length. ``--pairs cop
 pairs whose target *is* the condition (a copy task: can the condition path carry a whole
 trajectory at all?); then the sample should match its condition (``spearman_sample_score_vs_
 condition_score`` near 1), whatever the blocks. ``--top-block`` also samples from conditions of the
-top block (the flow's top-k come from there; the pairs never use it as a condition), with the max
+top block (the flow's top-k come from there; Eq. 5's pairs never use it as a condition, a run's
+``diffuser.top_block_pairs`` does, and the bench trains on the run's own pairing), with the max
 true return of conditions and samples and the share of samples above their own condition.
 ``--horizon 500 --streak 25`` scores the true returns (data and samples) with the stop-rule fill
 after the stop-rule cut, the definition of the flow's ``true_return_filled_stop_rule_*`` statistics. ``--preset P
@@ -78,8 +79,8 @@ def evaluate(diffuser, model, trajs, scores, ids, *, per_block: int, sampler: st
              stride: int = 1, strength: float = 1.0, inpaint_start: bool = False) -> dict:
     """Condition-following statistics of one model state (see module docstring).
 
-    ``top_block=True`` also conditions on the top block, which the pairs never use as a condition
-    (no block above it): the flow's top-k come from there. Its entry has no target block (None);
+    ``top_block=True`` also conditions on the top block, which Eq. 5's pairs never use as a condition
+    (no block above it; ``diffuser.top_block_pairs`` pairs it with itself): the flow's top-k come from there. Its entry has no target block (None);
     the correlations are over the other blocks' conditions, as without it. ``strength < 1`` samples SDEdit
     edits of each condition and ``inpaint_start`` holds each sample's first observation at its condition's,
     as the recipe's ``diffuser.strength`` / ``diffuser.inpaint_start`` do in the flow.
@@ -398,6 +399,7 @@ def main() -> None:
     if diffuser.score_condition:  # conditions (evaluation, copy pairs) carry their normalised score
         trajs, coarse = with_normalized_scores(trajs, scores), with_normalized_scores(coarse, scores)
     neighbours = args.pair_neighbours if args.pair_neighbours is not None else cfg.diffuser.get("pair_neighbours")
+    top_pairs = bool(cfg.diffuser.get("top_block_pairs", False))  # the run's own pairing (diffuser.top_block_pairs)
     if args.pairs == "copy":
         copy_gen = torch.Generator().manual_seed(int(cfg.seed))
 
@@ -409,15 +411,17 @@ def main() -> None:
         # own pairing (diffuser.pair_neighbours) unless --pair-neighbours
         try:
             buffer = make_block_pair_buffer(coarse, ids, batch_size=batch_size, seed=int(cfg.seed), keys=None,
-                                            neighbours=neighbours,
-                                            block_weights=args.pair_weights)
+                                            neighbours=neighbours, block_weights=args.pair_weights,
+                                            top_block_scores=scores if top_pairs else None)
         except ValueError as err:  # e.g. --pair-weights of another block count than the run's
             parser.error(f"{run / 'checkpoints' / 'blocks.pt'}: {err}")
     tag = f"-{args.tag}" if args.tag else ""
     # what the work dir's checkpoint trained on travels with it (a resume must not change it)
     data_file = work / "training_data.json"
-    training_data = {"pair_weights": args.pair_weights, "hold": args.hold, "pair_neighbours": neighbours}
-    run_default = {"pair_weights": None, "hold": False, "pair_neighbours": cfg.diffuser.get("pair_neighbours")}
+    training_data = {"pair_weights": args.pair_weights, "hold": args.hold, "pair_neighbours": neighbours,
+                     "top_block_pairs": top_pairs}
+    run_default = {"pair_weights": None, "hold": False, "pair_neighbours": cfg.diffuser.get("pair_neighbours"),
+                   "top_block_pairs": top_pairs}
     # files written before a field existed trained with its default
     trained_on = ({**run_default, **json.loads(data_file.read_text())} if data_file.exists()
                   else run_default if ckpt.exists() else training_data)

@@ -375,6 +375,15 @@ def inpaint_start(cfg: DictConfig) -> bool:
     return value
 
 
+def top_block_pairs(cfg: DictConfig) -> bool:
+    """``diffuser.top_block_pairs``: also train on pairs inside the top block, condition below target by s_psi
+    (:class:`~torchrl_ftb.preference.BlockPairSampler` ``top_block_scores``; not the paper's)."""
+    value = cfg.diffuser.get("top_block_pairs", False)
+    if not isinstance(value, bool):
+        raise ValueError(f"diffuser.top_block_pairs={value!r}: must be true or false")
+    return value
+
+
 def sdedit_strength(cfg: DictConfig) -> float:
     """``diffuser.strength`` in (0, 1]: 1 samples from noise (the paper); below 1 each flow sample is an
     SDEdit edit of its condition (:class:`~torchrl_ftb.diffusion.DiffusionSampler`)."""
@@ -417,7 +426,8 @@ def stage_diffuser(cfg, run: RunDir, trajs, scores, block_ids, obs_dim, act_dim,
     # a score_condition diffuser also reads each condition's dataset-normalised score
     buffer = make_block_pair_buffer(trajs, block_ids, batch_size=s["batch_size"], seed=int(cfg.seed),
                                     scores=scores if diffuser.score_condition else None,
-                                    neighbours=pair_neighbours(cfg))
+                                    neighbours=pair_neighbours(cfg),
+                                    top_block_scores=scores if top_block_pairs(cfg) else None)
     out = train_diffuser(
         diffuser, buffer, steps=s["steps"], lr=s["lr"], grad_clip=s["grad_clip"], logger=logger,
         checkpoint_dir=ckpt_dir, checkpoint_every=int(d.checkpoint_every), resume=run.resume,
@@ -949,6 +959,7 @@ def run(cfg: DictConfig) -> dict:
                              f"no termination flag: leave it null")
     sdedit_strength(cfg)  # a malformed strength fails now, not after the diffuser's training
     pair_neighbours(cfg)
+    top_block_pairs(cfg)
     try:  # the flow's numbers fail now, not after the diffuser's training
         check_flow_options(**flow_options(cfg), num_members=1 if flow_filter(cfg) == "true_return"
                            else int(cfg.score_model.get("num_members", 1)))

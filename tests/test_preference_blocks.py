@@ -163,6 +163,50 @@ def test_block_weights_choose_the_transitions(toy):
             BlockPairSampler(blocks, block_weights=bad)
 
 
+def test_top_block_pairs_condition_on_the_top_block_and_target_a_better_member(toy):
+    """``top_block_scores``: a K-th kind of pair inside the top block, condition below target by the score, drawn
+    as often as each transition; the best member is never a condition; with neighbours the nearest better ones."""
+    blocks = torch.arange(40) % 5  # 8 per block
+    scores = torch.randn(40, generator=torch.Generator().manual_seed(0))
+    batch = make_block_pair_buffer(toy, blocks, batch_size=5000, seed=0, top_block_scores=scores).sample()
+    i0, i1 = batch["index"].unbind(-1)
+    own = blocks[i0] == 4
+    counts = torch.bincount(batch["block"], minlength=5)
+    assert counts.min() > 800 and bool((batch["block"] == blocks[i0]).all())  # five kinds, about 1,000 each
+    assert bool((blocks[i1][~own] == blocks[i0][~own] + 1).all())  # the other pairs are Eq. 5's
+    assert bool((blocks[i1][own] == 4).all()) and bool((scores[i1][own] > scores[i0][own]).all())
+    top = torch.nonzero(blocks == 4).squeeze(-1)
+    best, worst = top[scores[top].argmax()], top[scores[top].argmin()]
+    assert int((i0[own] == best).sum()) == 0 and int((i1[own] == worst).sum()) == 0
+    assert set(i0[own].tolist()) == set(top.tolist()) - {int(best)}  # every other member conditions
+    assert set(i1[own].tolist()) == set(top.tolist()) - {int(worst)}  # every better one is a target
+    # off: the paper's pairs, drawn exactly as before
+    plain = make_block_pair_buffer(toy, blocks, batch_size=64, seed=1).sample()["index"]
+    assert torch.equal(plain, make_block_pair_buffer(toy, blocks, batch_size=64, seed=1).sample()["index"])
+    assert bool((blocks[plain[:, 1]] == blocks[plain[:, 0]] + 1).all())
+    # with neighbours: a top condition's target is one of its m nearest better members
+    starts = toy["observation"][:, 0]
+    near = BlockPairSampler(blocks, neighbours=2, starts=starts, top_block_scores=scores)
+    assert bool((near.neighbour_table[best] == -1).all())
+    z = standardized_starts(starts)
+    for a in top.tolist():
+        better = top[scores[top] > scores[a]]
+        want = set(better[torch.cdist(z[a:a + 1], z[better])[0].argsort()[:2]].tolist()) if better.numel() else set()
+        assert set(near.neighbour_table[a][near.neighbour_table[a] >= 0].tolist()) == want
+    idx = make_block_pair_buffer(toy, blocks, batch_size=2000, seed=2, neighbours=2, top_block_scores=scores,
+                                 block_weights=[0, 0, 0, 0, 1]).sample()["index"]
+    assert bool((blocks[idx] == 4).all()) and bool((scores[idx[:, 1]] > scores[idx[:, 0]]).all())
+    copy = BlockPairSampler(blocks)
+    copy.load_state_dict(near.state_dict())
+    assert copy.top_pairs and torch.equal(copy.neighbour_table, near.neighbour_table)
+    with pytest.raises(ValueError, match="block_weights must be 5 .* top block's own pairs"):
+        BlockPairSampler(blocks, top_block_scores=scores, block_weights=[1, 1, 1, 1])
+    with pytest.raises(ValueError, match="top_block_scores must be finite"):
+        BlockPairSampler(blocks, top_block_scores=scores[:5])
+    with pytest.raises(ValueError, match="top block of >= 2"):
+        BlockPairSampler(torch.tensor([0, 0, 1]), top_block_scores=torch.zeros(3))
+
+
 # --------------------------------------------------------------------------- labelled pairs
 def test_labeled_pair_buffer_orders_worse_to_better_and_skips_ties(toy):
     ret = toy["next", "reward"].squeeze(-1).sum(-1)

@@ -229,7 +229,8 @@ def test_bad_config_is_a_clear_error(tmp_path):
                               ("bc.lr=0", "train_bc: lr must be > 0"),
                               ("bc.steps=many", "bc.steps='many': must be a number"),
                               ("eval.num_episodes=0", r"eval.\*: evaluate_policy: num_episodes must be >= 1"),
-                              ("diffuser.pair_neighbours=0", "diffuser.pair_neighbours=0: must be null or an integer")):
+                              ("diffuser.pair_neighbours=0", "diffuser.pair_neighbours=0: must be null or an integer"),
+                              ("diffuser.top_block_pairs=1", "diffuser.top_block_pairs=1: must be true or false")):
         with pytest.raises(ValueError, match=message):
             recipe.run(_cfg(tmp_path / "f", override))
     assert not (tmp_path / "f").exists()  # refused before anything is written
@@ -265,13 +266,16 @@ def test_bad_config_is_a_clear_error(tmp_path):
         recipe.run(_cfg(tmp_path / "d", "env.name=hopper"))
 
 
-def test_neighbour_pairs_train_the_diffuser_and_lock_its_stage(tmp_path):
-    """``diffuser.pair_neighbours``: the diffuser trains on start-matched pairs; the option belongs to its stage."""
+@pytest.mark.parametrize("pairing, changed", [("diffuser.pair_neighbours=3", "diffuser.pair_neighbours=5"),
+                                              ("diffuser.top_block_pairs=true", "diffuser.top_block_pairs=false")])
+def test_pair_options_train_the_diffuser_and_lock_its_stage(tmp_path, pairing, changed):
+    """``diffuser.pair_neighbours`` / ``top_block_pairs``: the diffuser trains on start-matched pairs / also on the
+    top block's own; the option belongs to its stage."""
     recipe = _recipe()
-    out = recipe.run(_cfg(tmp_path, "stop_after=diffuser", "diffuser.pair_neighbours=3"))
+    out = recipe.run(_cfg(tmp_path, "stop_after=diffuser", pairing))
     assert out["stopped_after"] == "diffuser" and (tmp_path / "checkpoints" / "diffuser").is_dir()
     with pytest.raises(ValueError, match="different config"):  # a changed pairing means another diffuser
-        recipe.run(_cfg(tmp_path, "resume=true", "diffuser.pair_neighbours=5"))
+        recipe.run(_cfg(tmp_path, "resume=true", changed))
     redone = recipe.run(_cfg(tmp_path, "resume=true", "redo_from=diffuser", "stop_after=diffuser"))
     assert redone["stopped_after"] == "diffuser"
 

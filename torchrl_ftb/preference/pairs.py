@@ -65,14 +65,18 @@ def standardized_starts(starts: torch.Tensor, *, reference: torch.Tensor | None 
     return (starts - reference.mean(0)) / torch.where(std > 1e-8, std, torch.ones_like(std))
 
 
-def _transition_weights(weights: Sequence[float] | torch.Tensor | None, num_blocks: int) -> torch.Tensor | None:
-    """``K - 1`` transition weights, checked and normalised to probabilities (``None`` stays ``None``)."""
+def _transition_weights(weights: Sequence[float] | torch.Tensor | None, num_blocks: int,
+                        top: bool = False) -> torch.Tensor | None:
+    """Transition weights (``K - 1``, or ``K`` with the top block's own pairs last), checked and normalised to
+    probabilities (``None`` stays ``None``)."""
     if weights is None:
         return None
     w = torch.as_tensor(weights, dtype=torch.float64).flatten()
-    if w.numel() != num_blocks - 1 or not bool(torch.isfinite(w).all()) or bool((w < 0).any()) or float(w.sum()) <= 0:
-        raise ValueError(f"BlockPairSampler: block_weights must be {num_blocks - 1} finite non-negative weights "
-                         f"(one per transition k -> k+1 of {num_blocks} blocks), not all zero; got {w.tolist()}")
+    n = num_blocks if top else num_blocks - 1
+    if w.numel() != n or not bool(torch.isfinite(w).all()) or bool((w < 0).any()) or float(w.sum()) <= 0:
+        what = " and the top block's own pairs, last" if top else ""
+        raise ValueError(f"BlockPairSampler: block_weights must be {n} finite non-negative weights "
+                         f"(one per transition k -> k+1 of {num_blocks} blocks{what}), not all zero; got {w.tolist()}")
     return (w / w.sum()).float()
 
 
@@ -93,6 +97,12 @@ class BlockPairSampler(Sampler):
     proportional to ``block_weights[k]`` instead of uniformly: e.g. ``[0, 0, 1, 1]`` with ``K = 5``
     teaches only the transitions into the two top blocks, the ones a flow from the top-k asks for.
 
+    With ``top_block_scores`` (not the paper's), the top block also pairs with itself, as a ``K``-th
+    transition drawn as often as each other one: ``i0`` is any member of ``B_K`` but its best and ``i1`` a
+    member scored above it. Eq. 5 never shows the diffuser a top-block condition, yet the flow conditions on
+    the top-k, which come from there; these pairs make that condition one the model was trained on, with
+    "better than this" as its target (with ``neighbours``, one of the ``m`` better members that start nearest).
+
     Args:
         block_ids: ``int64 [N]`` block of each stored trajectory (from :func:`make_blocks`),
             contiguous ids ``0..K-1`` with ``K >= 2``, every block non-empty.
@@ -101,8 +111,10 @@ class BlockPairSampler(Sampler):
         neighbours: ``m >= 1``: pair each ``i0`` only with its ``m`` nearest next-block trajectories
             (all of them when the block is smaller). ``None`` (default): uniform, Eq. 5.
         starts: ``[N, D]`` what "near" compares (needed with ``neighbours``).
-        block_weights: ``K - 1`` non-negative weights of the transitions ``k -> k+1`` (not all zero).
-            ``None`` (default): uniform, Eq. 5.
+        block_weights: ``K - 1`` non-negative weights of the transitions ``k -> k+1`` (not all zero;
+            ``K`` with ``top_block_scores``, the top block's own pairs last). ``None`` (default): uniform, Eq. 5.
+        top_block_scores: ``[N]`` scores that order the top block (e.g. ``s_psi``, the blocks' own); given,
+            the sampler also draws pairs inside the top block (needs >= 2 members). ``None`` (default): Eq. 5.
 
     Returns (from :meth:`sample`):
         ``index`` ``[B, 2]`` and info ``{"block": k [B]}``.
@@ -118,7 +130,8 @@ class BlockPairSampler(Sampler):
 
     def __init__(self, block_ids: torch.Tensor, *, neighbours: int | None = None,
                  starts: torch.Tensor | None = None,
-                 block_weights: Sequence[float] | torch.Tensor | None = None) -> None:
+                 block_weights: Sequence[float] | torch.Tensor | None = None,
+                 top_block_scores: torch.Tensor | None = None) -> None:
         block_ids = torch.as_tensor(block_ids)
         if block_ids.ndim != 1 or block_ids.dtype not in (torch.int64, torch.int32):
             raise ValueError(f"BlockPairSampler: block_ids must be a 1-D integer tensor, got {block_ids.dtype} {list(block_ids.shape)}")
@@ -135,7 +148,20 @@ class BlockPairSampler(Sampler):
         self._counts = counts
         self._offsets = torch.cumsum(counts, 0) - counts
         self._members = torch.argsort(block_ids, stable=True)  # trajectories grouped by block
-        self.block_weights = _transition_weights(block_weights, self.num_blocks)
+        self.top_block_scores = None
+        if top_block_scores is not None:
+            top_block_scores = torch.as_tensor(top_block_scores).detach().double().cpu()
+            if top_block_scores.shape != block_ids.shape or not bool(torch.isfinite(top_block_scores).all()):
+                raise ValueError(f"BlockPairSampler: top_block_scores must be finite [N={block_ids.numel()}], "
+                                 f"got {list(top_block_scores.shape)}")
+            if int(counts[-1]) < 2:
+                raise ValueError("BlockPairSampler: top_block_scores needs a top block of >= 2 trajectories "
+                                 f"(it has {int(counts[-1])})")
+            self.top_block_scores = top_block_scores
+            top = torch.nonzero(block_ids == self.num_blocks - 1).squeeze(-1)
+            #: the top block's members, worst to best (its own pairs: condition rank r0 < target rank r1)
+            self._top_sorted = top[torch.argsort(top_block_scores[top], stable=True)]
+        self.block_weights = _transition_weights(block_weights, self.num_blocks, top=self.top_pairs)
         self.neighbours = None if neighbours is None else int(neighbours)
         self.starts = None
         if self.neighbours is not None:
@@ -150,8 +176,19 @@ class BlockPairSampler(Sampler):
                 raise ValueError(f"BlockPairSampler: starts must be finite [N={block_ids.numel()}, D], "
                                  f"got {list(starts.shape)}")
             self.starts = starts
-        #: ``[N, m]`` the next-block neighbours of each trajectory (-1: none; top block, or padding)
+        #: ``[N, m]`` the next-block neighbours of each trajectory (-1: none; top block, or padding); with
+        #: ``top_block_scores`` a top-block member's are its nearest better members (none for the best)
         self.neighbour_table, self._neighbour_counts = self._neighbour_table()
+
+    @property
+    def top_pairs(self) -> bool:
+        """Whether the top block also pairs with itself (``top_block_scores`` given)."""
+        return self.top_block_scores is not None
+
+    @property
+    def num_transitions(self) -> int:
+        """Kinds of pairs drawn: ``K - 1`` adjacent-block transitions, plus the top block's own pairs."""
+        return self.num_blocks - 1 + int(self.top_pairs)
 
     def _neighbour_table(self) -> tuple[torch.Tensor | None, torch.Tensor | None]:
         if self.neighbours is None:
@@ -164,6 +201,13 @@ class BlockPairSampler(Sampler):
             m = min(self.neighbours, nxt.numel())
             nearest = torch.cdist(z[rows], z[nxt]).topk(m, dim=1, largest=False).indices  # [|B_k|, m]
             table[rows, :m] = nxt[nearest]
+        if self.top_pairs:  # each top member's nearest better members
+            ranked = self._top_sorted
+            for r in range(ranked.numel() - 1):
+                better = ranked[r + 1:]
+                m = min(self.neighbours, better.numel())
+                nearest = torch.cdist(z[ranked[r:r + 1]], z[better]).topk(m, dim=1, largest=False).indices[0]
+                table[ranked[r], :m] = better[nearest]
         return table, (table >= 0).sum(1)
 
     def _draw(self, block: torch.Tensor) -> torch.Tensor:
@@ -178,12 +222,20 @@ class BlockPairSampler(Sampler):
                 f"{self.block_ids.numel()} entries"
             )
         if self.block_weights is None:
-            k = torch.randint(0, self.num_blocks - 1, (batch_size,), generator=self._rng)
+            k = torch.randint(0, self.num_transitions, (batch_size,), generator=self._rng)
         else:
             k = torch.multinomial(self.block_weights, batch_size, replacement=True, generator=self._rng)
+        own = k == self.num_blocks - 1  # the top block's own pairs (only with top_block_scores)
         i0 = self._draw(k)
+        if bool(own.any()):  # their condition: any top member but the best
+            n = self._top_sorted.numel()
+            r0 = (torch.rand(k.shape, generator=self._rng) * (n - 1)).long().clamp(max=n - 2)
+            i0 = torch.where(own, self._top_sorted[r0], i0)
         if self.neighbour_table is None:
-            i1 = self._draw(k + 1)
+            i1 = self._draw((k + 1).clamp(max=self.num_blocks - 1))
+            if bool(own.any()):  # their target: a member ranked above the condition
+                r1 = r0 + 1 + (torch.rand(k.shape, generator=self._rng) * (n - 1 - r0)).long().clamp(max=n - 2 - r0)
+                i1 = torch.where(own, self._top_sorted[r1], i1)
         else:
             u = torch.rand(k.shape, generator=self._rng)
             count = self._neighbour_counts[i0]
@@ -201,16 +253,19 @@ class BlockPairSampler(Sampler):
 
     def state_dict(self) -> dict[str, Any]:
         return {"block_ids": self.block_ids, "neighbours": self.neighbours, "starts": self.starts,
-                "block_weights": self.block_weights}
+                "block_weights": self.block_weights, "top_block_scores": self.top_block_scores}
 
     def load_state_dict(self, state_dict: dict[str, Any]) -> None:
         self.__init__(state_dict["block_ids"], neighbours=state_dict.get("neighbours"),
-                      starts=state_dict.get("starts"), block_weights=state_dict.get("block_weights"))
+                      starts=state_dict.get("starts"), block_weights=state_dict.get("block_weights"),
+                      top_block_scores=state_dict.get("top_block_scores"))
 
     def __repr__(self) -> str:
         near = "" if self.neighbours is None else f", neighbours={self.neighbours}"
         if self.block_weights is not None:
             near += f", block_weights={[round(w, 4) for w in self.block_weights.tolist()]}"
+        if self.top_pairs:
+            near += ", top_block_pairs=True"
         return f"{type(self).__name__}(num_blocks={self.num_blocks}, sizes={self._counts.tolist()}{near})"
 
 
@@ -295,6 +350,7 @@ def make_block_pair_buffer(
     scores: torch.Tensor | None = None,
     neighbours: int | None = None,
     block_weights: Sequence[float] | torch.Tensor | None = None,
+    top_block_scores: torch.Tensor | None = None,
 ) -> TensorDictReplayBuffer:
     """Replay buffer over ``trajs`` whose ``sample()`` is an adjacent-block pair batch (Eq. 5).
 
@@ -316,10 +372,12 @@ def make_block_pair_buffer(
             ``None`` (default): uniform pairs.
         block_weights: ``K - 1`` weights of the transitions ``k -> k+1`` (:class:`BlockPairSampler`; not the
             paper's). ``None`` (default): every transition equally often.
+        top_block_scores: ``[N]`` scores ordering the top block (usually the blocks' ``scores``): also draw
+            pairs inside the top block, condition below target (:class:`BlockPairSampler`; not the paper's).
 
     Raises:
         ValueError: malformed ``trajs``, ``block_ids`` or ``scores`` of the wrong length, < 2 blocks,
-            ``block_weights`` not one non-negative weight per transition.
+            ``block_weights`` not one non-negative weight per transition, a top block of one trajectory.
     """
     validate_trajectories(trajs, name="make_block_pair_buffer: trajs")
     block_ids = torch.as_tensor(block_ids)
@@ -331,7 +389,8 @@ def make_block_pair_buffer(
         trajs = with_normalized_scores(trajs, scores)
         keys = None if keys is None else [*keys, NORMALIZED_SCORE_KEY]
     starts = None if neighbours is None else trajs.get("observation")[:, 0]
-    sampler = BlockPairSampler(block_ids, neighbours=neighbours, starts=starts, block_weights=block_weights)
+    sampler = BlockPairSampler(block_ids, neighbours=neighbours, starts=starts, block_weights=block_weights,
+                               top_block_scores=top_block_scores)
     return _pair_buffer(trajs, sampler, batch_size=batch_size, seed=seed, keys=keys)
 
 
