@@ -29,7 +29,7 @@ sys.path.insert(0, str(ROOT))
 
 from torchrl_ftb.datasets import make_dataset  # noqa: E402
 from torchrl_ftb.envs import locomotion_env_id, replay_locomotion_actions  # noqa: E402
-from torchrl_ftb.envs.locomotion import _run_episode, _set_from_obs, _sim  # noqa: E402
+from torchrl_ftb.envs.locomotion import _run_episode, _sim, _state_from_obs  # noqa: E402
 from torchrl_ftb.provenance import run_record, write_json  # noqa: E402
 
 
@@ -64,7 +64,7 @@ def fidelity(dataset: str, num: int, *, cache_dir: str | Path | None = None) -> 
         other = order[(rank + 1) % len(order)]  # another trajectory first, then no reset: the old readings
         mujoco.mj_resetData(u.model, u.data)
         _rollout(u, data["action"][other, : int(data["mask"][other].sum())].double().numpy())
-        _set_from_obs(u, obs[0].double().numpy(), fresh=False)
+        u.set_state(*_state_from_obs(u, obs[0].double().numpy()))  # no reset: the warm start carries over
         row["from_observation_after_another"] = _rollout(u, act)
         rows.append(row)
     return rows

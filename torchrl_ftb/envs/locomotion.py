@@ -110,19 +110,21 @@ def _sim(env_id: str):
     return env.unwrapped
 
 
-def _set_from_obs(u, obs: np.ndarray, *, fresh: bool = True) -> None:
+def _state_from_obs(u, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(qpos, qvel)`` of the simulator state an observation shows (x = 0: the observation omits it)."""
+    nq = u.model.nq
+    return np.concatenate([[0.0], obs[: nq - 1]]), obs[nq - 1 :]
+
+
+def _set_from_obs(u, obs: np.ndarray) -> None:
     """The simulator at the state of ``obs`` (x = 0) with a fresh ``mjData``, as a reset leaves it: without
     ``mj_resetData`` the contact solver's warm start of whatever ran before would carry over, and on
     HalfCheetah's many contacts change the outcome, so a reading would depend on the order of the calls
-    (``fresh=False`` keeps it: only ``bench/locomotion_fidelity.py`` shows that effect)."""
+    (``bench/locomotion_fidelity.py`` shows that effect)."""
     import mujoco
 
-    nq = u.model.nq
-    qpos = np.concatenate([[0.0], obs[: nq - 1]])
-    qvel = obs[nq - 1 :]
-    if fresh:
-        mujoco.mj_resetData(u.model, u.data)
-    u.set_state(qpos, qvel)
+    mujoco.mj_resetData(u.model, u.data)
+    u.set_state(*_state_from_obs(u, obs))
 
 
 def _save_state(u) -> np.ndarray:
