@@ -367,21 +367,23 @@ def make_sampler(cfg, diffuser) -> DiffusionSampler:
                             autocast_bf16=bool(cfg.diffuser.autocast_bf16))
 
 
+def switch(cfg: DictConfig, key: str) -> bool:
+    """The on/off option ``key`` (e.g. ``"diffuser.inpaint_start"``; absent: off), or a clear error naming it."""
+    value = OmegaConf.select(cfg, key, default=False)
+    if not isinstance(value, bool):
+        raise ValueError(f"{key}={value!r}: must be true or false")
+    return value
+
+
 def inpaint_start(cfg: DictConfig) -> bool:
     """``diffuser.inpaint_start``: each flow sample starts where its condition starts (not the paper's)."""
-    value = cfg.diffuser.get("inpaint_start", False)
-    if not isinstance(value, bool):
-        raise ValueError(f"diffuser.inpaint_start={value!r}: must be true or false")
-    return value
+    return switch(cfg, "diffuser.inpaint_start")
 
 
 def top_block_pairs(cfg: DictConfig) -> bool:
     """``diffuser.top_block_pairs``: also train on pairs inside the top block, condition below target by s_psi
     (:class:`~torchrl_ftb.preference.BlockPairSampler` ``top_block_scores``; not the paper's)."""
-    value = cfg.diffuser.get("top_block_pairs", False)
-    if not isinstance(value, bool):
-        raise ValueError(f"diffuser.top_block_pairs={value!r}: must be true or false")
-    return value
+    return switch(cfg, "diffuser.top_block_pairs")
 
 
 def sdedit_strength(cfg: DictConfig) -> float:
@@ -655,10 +657,7 @@ def relabel_generated(cfg, run: RunDir, improved: TensorDictBase, generated: tor
     """``bc.relabel_actions``: the final set with its generated trajectories' actions replaced by those the
     run's tracker (:func:`path_tracker`) gives for their own states
     (:meth:`torchrl_ftb.policy.PathTracker.relabel`). Off (the paper's): the diffuser's own actions."""
-    value = cfg.bc.get("relabel_actions", False)
-    if not isinstance(value, bool):
-        raise ValueError(f"bc.relabel_actions={value!r}: must be true or false")
-    if not value or not bool(torch.as_tensor(generated).any()):
+    if not switch(cfg, "bc.relabel_actions") or not bool(torch.as_tensor(generated).any()):
         return improved
     tracker = path_tracker(cfg, run, trajs, progress=bool(cfg.progress))
     return tracker.relabel(improved, torch.as_tensor(generated).bool().cpu())
