@@ -80,8 +80,8 @@ def evaluate(diffuser, model, trajs, scores, ids, *, per_block: int, sampler: st
     """Condition-following statistics of one model state (see module docstring).
 
     ``top_block=True`` also conditions on the top block, which Eq. 5's pairs never use as a condition
-    (no block above it; ``diffuser.top_block_pairs`` pairs it with itself): the flow's top-k come from there. Its entry has no target block (None);
-    the correlations are over the other blocks' conditions, as without it. ``strength < 1`` samples SDEdit
+    (no block above it; ``diffuser.top_block_pairs`` pairs it with itself): the flow's top-k come from there.
+    Its entry has no target block (None); the correlations are over the other blocks' conditions, as without it. ``strength < 1`` samples SDEdit
     edits of each condition and ``inpaint_start`` holds each sample's first observation at its condition's,
     as the recipe's ``diffuser.strength`` / ``diffuser.inpaint_start`` do in the flow.
     """
