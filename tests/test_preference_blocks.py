@@ -180,7 +180,7 @@ def test_top_block_pairs_condition_on_the_top_block_and_target_a_better_member(t
     assert int((i0[own] == best).sum()) == 0 and int((i1[own] == worst).sum()) == 0
     assert set(i0[own].tolist()) == set(top.tolist()) - {int(best)}  # every other member conditions
     assert set(i1[own].tolist()) == set(top.tolist()) - {int(worst)}  # every better one is a target
-    # off: the paper's pairs, drawn exactly as before
+    # off: the paper's adjacent pairs, seeded
     plain = make_block_pair_buffer(toy, blocks, batch_size=64, seed=1).sample()["index"]
     assert torch.equal(plain, make_block_pair_buffer(toy, blocks, batch_size=64, seed=1).sample()["index"])
     assert bool((blocks[plain[:, 1]] == blocks[plain[:, 0]] + 1).all())
