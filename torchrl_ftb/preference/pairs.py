@@ -66,13 +66,13 @@ def standardized_starts(starts: torch.Tensor, *, reference: torch.Tensor | None 
 
 
 def _transition_weights(weights: Sequence[float] | torch.Tensor | None, num_blocks: int,
-                        top: bool = False) -> torch.Tensor | None:
-    """Transition weights (``K - 1``, or ``K`` with the top block's own pairs last), checked and normalised to
-    probabilities (``None`` stays ``None``)."""
+                        num_transitions: int) -> torch.Tensor | None:
+    """Transition weights (``num_transitions``: ``K - 1``, or ``K`` with the top block's own pairs last), checked
+    and normalised to probabilities (``None`` stays ``None``)."""
     if weights is None:
         return None
     w = torch.as_tensor(weights, dtype=torch.float64).flatten()
-    n = num_blocks if top else num_blocks - 1
+    n, top = num_transitions, num_transitions == num_blocks
     if w.numel() != n or not bool(torch.isfinite(w).all()) or bool((w < 0).any()) or float(w.sum()) <= 0:
         what = " and the top block's own pairs, last" if top else ""
         raise ValueError(f"BlockPairSampler: block_weights must be {n} finite non-negative weights "
@@ -161,7 +161,7 @@ class BlockPairSampler(Sampler):
             top = torch.nonzero(block_ids == self.num_blocks - 1).squeeze(-1)
             #: the top block's members, worst to best (its own pairs: condition rank r0 < target rank r1)
             self._top_sorted = top[torch.argsort(top_block_scores[top], stable=True)]
-        self.block_weights = _transition_weights(block_weights, self.num_blocks, top=self.top_pairs)
+        self.block_weights = _transition_weights(block_weights, self.num_blocks, self.num_transitions)
         self.neighbours = None if neighbours is None else int(neighbours)
         self.starts = None
         if self.neighbours is not None:
