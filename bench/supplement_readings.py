@@ -31,6 +31,8 @@ sys.path.insert(0, str(ROOT))
 from torchrl_ftb.analysis import (  # noqa: E402
     locomotion_open_loop_improvement,
     locomotion_tracked_improvement,
+    locomotion_tracked_returns,
+    observation_scale,
     save_figure,
 )
 from torchrl_ftb.augmentation import load_supplement  # noqa: E402
@@ -39,21 +41,35 @@ from torchrl_ftb.datasets import make_dataset  # noqa: E402
 from torchrl_ftb.provenance import run_record, write_json  # noqa: E402
 
 
-def readings(dataset: str, data, supplement_path: str | Path, *, top_k: int, candidates: int, seed: int) -> dict:
-    """The top-``top_k`` by return of ``data`` (the ``dataset``'s trajectories) -> the supplement, claimed / open
-    loop / tracked (module docstring)."""
+def top_trajectories(data, top_k: int):
+    """The top-``top_k`` of ``data`` by return: what the augmentation flow starts from."""
+    return data[true_return(data).argsort(descending=True)[:top_k]]
+
+
+def track_top(dataset: str, top, *, candidates: int, seed: int) -> tuple[torch.Tensor, list[dict]]:
+    """The top-k tracked once, for every supplement's reading (``original_tracked`` of
+    :func:`~torchrl_ftb.analysis.locomotion_tracked_improvement`)."""
+    return locomotion_tracked_returns(dataset.split("-", 1)[0], top, scale=observation_scale(top),
+                                      candidates=candidates, seed=seed)
+
+
+def readings(dataset: str, top, supplement_path: str | Path, *, candidates: int, seed: int,
+             top_tracked: tuple[torch.Tensor, list[dict]] | None = None) -> dict:
+    """The top-k trajectories ``top`` of the ``dataset`` -> the supplement, claimed / open loop / tracked (module
+    docstring); ``top_tracked``: :func:`track_top` of ``top`` with the same options (default: tracked here)."""
     env = dataset.split("-", 1)[0]
     supplement, info = load_supplement(supplement_path)
     if supplement.batch_size[0] == 0:
         raise ValueError(f"{supplement_path}: the supplement holds no trajectories")
-    if supplement.batch_size[1] != data.batch_size[1]:
-        raise ValueError(f"{supplement_path}: horizon {supplement.batch_size[1]} != the dataset's {data.batch_size[1]}")
-    top = data[true_return(data).argsort(descending=True)[:top_k]]
+    if supplement.batch_size[1] != top.batch_size[1]:
+        raise ValueError(f"{supplement_path}: horizon {supplement.batch_size[1]} != the dataset's {top.batch_size[1]}")
     generated = torch.ones(supplement.batch_size[0], dtype=torch.bool)
     open_loop = locomotion_open_loop_improvement(supplement, top, generated, env_name=env)
-    tracked = locomotion_tracked_improvement(supplement, top, generated, env_name=env, candidates=candidates, seed=seed)
+    tracked = locomotion_tracked_improvement(supplement, top, generated, env_name=env, candidates=candidates, seed=seed,
+                                             original_tracked=top_tracked)
     return {"dataset": dataset, "supplement": str(supplement_path), "kind": info.get("kind"),
-            "diffuser": info.get("diffuser"), "num_trajectories": int(supplement.batch_size[0]), "top_k": top_k,
+            "diffuser": info.get("diffuser"), "num_trajectories": int(supplement.batch_size[0]),
+            "top_k": int(top.batch_size[0]),
             "claimed": tracked["claimed"], "open_loop": open_loop["improvement"]["plain"]["replayed"],
             "tracked": tracked["tracked"], "tracked_fidelity": tracked["fidelity"],
             "tracked_generated": tracked["generated"],
@@ -101,12 +117,16 @@ def main() -> None:
         parser.error("--supplements and --out are needed to read supplements")
     env, kind = args.dataset.split("-", 1)
     data, _ = make_dataset(env, kind=kind, progress=False)
-    rows = {}
-    for item in args.supplements:
-        label, sep, path = item.partition("=")
+    items = [item.partition("=") for item in args.supplements]
+    for label, sep, path in items:
         if not sep:
-            parser.error(f"--supplements: {item!r} is not LABEL=PATH")
-        rows[label] = readings(args.dataset, data, path, top_k=args.top_k, candidates=args.candidates, seed=args.seed)
+            parser.error(f"--supplements: {label + sep + path!r} is not LABEL=PATH")
+    top = top_trajectories(data, args.top_k)
+    top_tracked = track_top(args.dataset, top, candidates=args.candidates, seed=args.seed)
+    rows = {}
+    for label, _, path in items:
+        rows[label] = readings(args.dataset, top, path, candidates=args.candidates, seed=args.seed,
+                               top_tracked=top_tracked)
         r = rows[label]
         print(f"{label}: mean top-k -> supplement: claimed {r['claimed']['true_return_mean_before']:.0f} -> "
               f"{r['claimed']['true_return_mean_after']:.0f}, open loop {r['open_loop']['true_return_mean_before']:.0f}"

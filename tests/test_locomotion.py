@@ -348,7 +348,7 @@ def test_lookahead_tracker_reproduces_a_recorded_path_and_is_checked(report_rows
 
     from omegaconf import OmegaConf
 
-    from torchrl_ftb.analysis import locomotion_tracked_improvement
+    from torchrl_ftb.analysis import locomotion_tracked_improvement, locomotion_tracked_returns, observation_scale
     from torchrl_ftb.envs import track_locomotion_paths
     from torchrl_ftb.testing import load_script
 
@@ -358,6 +358,14 @@ def test_lookahead_tracker_reproduces_a_recorded_path_and_is_checked(report_rows
     assert out["lookahead"] == 4
     assert out["tracked"]["true_return_mean_before"] == pytest.approx(recorded_return, abs=1e-3)
     assert out["fidelity"]["path_error_median"] < 1e-4
+    # the top-k tracked once and handed in reads the same (what bench/supplement_readings.py does per supplement)
+    top = locomotion_tracked_returns("hopper", recorded, scale=observation_scale(recorded), candidates=8, lookahead=4)
+    again = locomotion_tracked_improvement(final, recorded, torch.tensor([False, True]), env_name="hopper",
+                                           candidates=8, lookahead=4, original_tracked=top)
+    assert again == out
+    with pytest.raises(ValueError, match="original_tracked holds 2 returns and 2 episodes for 1 top-k"):
+        locomotion_tracked_improvement(final, recorded, torch.tensor([False, True]), env_name="hopper",
+                                       original_tracked=(top[0].repeat(2), top[1] * 2))
     with pytest.raises(ValueError, match="lookahead >= 1"):
         track_locomotion_paths("hopper", recorded["observation"], recorded["action"], [10], lookahead=0)
     recipe = load_script(Path(__file__).resolve().parents[1] / "recipes" / "ftb_offline.py", "recipe_lookahead")
@@ -400,3 +408,29 @@ def test_fidelity_bench_rereads_hopper_data_exactly(tmp_path):
     for r in rows:
         for key in ("from_observation", "from_stored_state", "from_observation_after_another"):
             assert r[key] == pytest.approx(r["recorded"], abs=1e-2), key
+
+
+def test_supplement_readings_bench_tracks_the_top_k_once(tmp_path):
+    """bench/supplement_readings.py tracks the top-k once for all supplements: a reading given that tracking equals
+    one that tracks the top-k itself, and a supplement of another horizon is refused naming its file."""
+    from pathlib import Path
+
+    from torchrl_ftb.augmentation.augment import SUPPLEMENT_FORMAT
+    from torchrl_ftb.data.trajectories import atomic_torch_save
+    from torchrl_ftb.testing import load_script
+
+    bench = load_script(Path(__file__).resolve().parents[1] / "bench" / "supplement_readings.py", "bench_supplement")
+    final, recorded, _ = _recorded_and_a_falling_claim()
+    final[("next", "reward")] = torch.zeros(*final.batch_size, 1)
+    path = tmp_path / "supplement.pt"
+    atomic_torch_save({"format": SUPPLEMENT_FORMAT, "data": final.to_dict(), "batch_size": list(final.batch_size),
+                       "info": {"kind": "ftb"}}, path)
+    top_tracked = bench.track_top("hopper-medium-replay", recorded, candidates=8, seed=0)
+    once = bench.readings("hopper-medium-replay", recorded, path, candidates=8, seed=0, top_tracked=top_tracked)
+    assert once == bench.readings("hopper-medium-replay", recorded, path, candidates=8, seed=0)
+    assert once["top_k"] == 1 and once["num_trajectories"] == 2 and once["kind"] == "ftb"
+    short = tmp_path / "short.pt"
+    atomic_torch_save({"format": SUPPLEMENT_FORMAT, "data": final[:, :50].to_dict(), "batch_size": [2, 50],
+                       "info": {}}, short)
+    with pytest.raises(ValueError, match="short.pt: horizon 50 != the dataset's 200"):
+        bench.readings("hopper-medium-replay", recorded, short, candidates=8, seed=0)

@@ -219,7 +219,8 @@ def locomotion_tracked_returns(env_name: str, trajs: TensorDictBase, *, scale: t
 
 def locomotion_tracked_improvement(final: TensorDictBase, original: TensorDictBase, generated: torch.Tensor, *,
                                    env_name: str, candidates: int = 64, noise: float = 0.3, uniform: float = 0.5,
-                                   lookahead: int = 1, seed: int = 0, progress: bool = False) -> dict:
+                                   lookahead: int = 1, seed: int = 0, progress: bool = False,
+                                   original_tracked: tuple[torch.Tensor, list[dict]] | None = None) -> dict:
     """The flow's improvement (original top-k -> final set) on locomotion with every path tracked in closed loop.
 
     Every trajectory of both sets is tracked from its own first state by
@@ -230,6 +231,9 @@ def locomotion_tracked_improvement(final: TensorDictBase, original: TensorDictBa
     Args:
         final, original, generated, env_name, progress: as
             :func:`~torchrl_ftb.analysis.locomotion_open_loop_improvement`.
+        original_tracked: the top-k already tracked, :func:`locomotion_tracked_returns` of ``original`` with
+            ``scale=observation_scale(original)`` and this call's tracker options (deterministic given them), to
+            read several final sets against one top-k without tracking it again; default: tracked here.
 
     Returns:
         ``horizon`` (None: plain returns), ``lookahead``, ``tracked`` and ``claimed`` (``return_summary``, top-k ->
@@ -249,10 +253,15 @@ def locomotion_tracked_improvement(final: TensorDictBase, original: TensorDictBa
     """
     generated, sets, claimed = locomotion_sets("locomotion_tracked_improvement", env_name, final, original, generated)
     scale = observation_scale(sets[0])
+    if original_tracked is not None and (len(original_tracked[0]) != sets[0].batch_size[0]
+                                         or len(original_tracked[1]) != sets[0].batch_size[0]):
+        raise ValueError(f"locomotion_tracked_improvement: original_tracked holds {len(original_tracked[0])} returns "
+                         f"and {len(original_tracked[1])} episodes for {sets[0].batch_size[0]} top-k trajectories")
     tracked, episodes = [], []
-    for t in tqdm(sets, desc=f"{env_name} tracked paths (top-k, final set)", disable=not progress):
-        returns, eps = locomotion_tracked_returns(env_name, t, scale=scale, candidates=candidates, noise=noise,
-                                                  uniform=uniform, lookahead=lookahead, seed=seed)
+    for i, t in enumerate(tqdm(sets, desc=f"{env_name} tracked paths (top-k, final set)", disable=not progress)):
+        returns, eps = original_tracked if i == 0 and original_tracked is not None else locomotion_tracked_returns(
+            env_name, t, scale=scale, candidates=candidates, noise=noise, uniform=uniform, lookahead=lookahead,
+            seed=seed)
         tracked.append(returns)
         episodes.append(list(zip([int(n) for n in t["mask"].sum(-1).tolist()], eps)))
 
