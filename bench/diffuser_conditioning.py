@@ -208,6 +208,20 @@ def summarize(paths: list[Path]) -> str:
     return "\n".join(rows)
 
 
+def _summary_cell(v: dict) -> str:
+    """One condition block's cell of :func:`summarize`'s table: sample score (target block's), then the true returns
+    and the conditions' round trip where the file has them, and for the top block the share above own condition."""
+    parts = [f"{v['sample_score']:.0f} ({_num(v['target_block_score'])})"]
+    if "sample_true_return" in v:
+        parts.append(f"{v['sample_true_return']:.0f} ({_num(v['target_block_true_return'])})")
+    if "condition_round_trip_true_return" in v:
+        parts.append(f"conditions' round trip {v['condition_round_trip_true_return']:.0f}")
+    if v["target_block_score"] is None and "samples_above_condition" in v:
+        parts.append(f"above own condition {v['samples_above_condition']:.0%}, max {v['sample_true_return_max']:.0f}"
+                     f" (conditions' {v['condition_true_return_max']:.0f})")
+    return "; ".join(parts)
+
+
 def _summary_rows(path: Path, rec: dict, *, header: bool) -> list[str]:
     """:func:`summarize`'s rows of one results file (with the table's header when ``header``)."""
     rows = []
@@ -222,16 +236,7 @@ def _summary_rows(path: Path, rec: dict, *, header: bool) -> list[str]:
         true_rho = ev.get("spearman_sample_true_return_vs_condition_block")
         rows.append(f"| {path.stem} | {ev['step']} | {ev['spearman_sample_score_vs_condition_block']:+.2f} / "
                     + ("—" if true_rho is None else f"{true_rho:+.2f}") + " | "
-                    + " | ".join(f"{v['sample_score']:.0f} ({_num(v['target_block_score'])})"
-                                 + (f"; {v['sample_true_return']:.0f} ({_num(v['target_block_true_return'])})"
-                                    if "sample_true_return" in v else "")
-                                 + (f"; conditions' round trip {v['condition_round_trip_true_return']:.0f}"
-                                    if "condition_round_trip_true_return" in v else "")
-                                 + (f"; above own condition {v['samples_above_condition']:.0%}, max "
-                                    f"{v['sample_true_return_max']:.0f} (conditions' {v['condition_true_return_max']:.0f})"
-                                    if v["target_block_score"] is None and "samples_above_condition" in v else "")
-                                 for v in per.values())
-                    + " |")
+                    + " | ".join(_summary_cell(v) for v in per.values()) + " |")
     return rows
 
 
