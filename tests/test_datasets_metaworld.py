@@ -242,6 +242,24 @@ def _fake_run_dir(td, cache, tmp_path):
 
 
 @pytest.mark.integration
+def test_nearest_start_finds_its_episode_when_the_hand_starts_off_the_common_start(tiny_dataset):
+    """A generated sample's hand rarely starts exactly where every episode's does. The replay start must still be
+    the episode whose object and goal the sample has: with a max-abs distance the hand offset tied every row and
+    row 0 won (sessions 29-44 replayed 165 of 180 guidance-4 samples from row 0)."""
+    from torchrl_ftb.analysis import nearest_start
+
+    td, _, _ = tiny_dataset
+    first = td["observation"][:, 0].float()
+    hand_off = first.clone()
+    hand_off[:, 0:3] += 0.3  # larger than any difference between the episodes' starts
+    spread = (first[:, None] - first[None]).abs().amax(-1)
+    assert float(spread.max()) < 0.3  # so under max-abs every row is 0.3 away: a tie
+    rows, dist = nearest_start(hand_off, first)
+    assert rows.tolist() == list(range(first.shape[0]))
+    assert dist.tolist() == pytest.approx([0.3] * first.shape[0], abs=1e-6)
+
+
+@pytest.mark.integration
 def test_open_loop_bench_replays_recorded_trajectories_to_the_returns_read_off_their_states(tiny_dataset, tmp_path,
                                                                                            report_rows):
     """bench/open_loop.py end to end on a run directory whose "generated" trajectories are recorded ones:

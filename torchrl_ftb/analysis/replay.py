@@ -74,16 +74,25 @@ def match_rows(observation: torch.Tensor, data_observation: torch.Tensor) -> tor
 
 
 def nearest_start(first: torch.Tensor, data_first: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Dataset row whose first observation is nearest to each sample's, and the distance (max-abs).
+    """Dataset row whose first observation is nearest to each sample's (Euclidean), and the distance to it
+    (max-abs, what :data:`START_TOLERANCE` bounds).
+
+    The Euclidean distance picks the row: a coordinate every dataset start shares (Meta-World's hand start, a
+    fixed goal) adds the same to every row, so the choice rests on the coordinates that tell episodes apart (the
+    object's and the goal's positions). The max-abs distance picked rows until session 45: a sample whose hand
+    starts a few centimetres off the common start was that far from *every* row, the tie went to row 0, and
+    most samples were replayed with another episode's object position.
 
     Example:
         >>> rows, dist = nearest_start(torch.tensor([[0.0, 1.0]]), torch.tensor([[5.0, 5.0], [0.0, 1.0]]))
         >>> rows.tolist(), dist.tolist()
         ([1], [0.0])
+        >>> # the first coordinate is shared by every start: the second decides (max-abs would tie at 0.5)
+        >>> nearest_start(torch.tensor([[0.5, 0.15]]), torch.tensor([[0.0, 0.0], [0.0, 0.2]]))[0].tolist()
+        [1]
     """
-    dist = (first[:, None] - data_first[None]).abs().amax(-1)
-    best = dist.min(-1)
-    return best.indices, best.values
+    rows = torch.cdist(first.double(), data_first.double()).argmin(-1)
+    return rows, (first - data_first[rows]).abs().amax(-1)
 
 
 def episode_jobs(meta: dict, rows: torch.Tensor) -> list[tuple[int, int]]:
