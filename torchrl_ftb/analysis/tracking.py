@@ -258,8 +258,9 @@ def locomotion_tracked_improvement(final: TensorDictBase, original: TensorDictBa
         raise ValueError(f"locomotion_tracked_improvement: original_tracked holds {len(original_tracked[0])} returns "
                          f"and {len(original_tracked[1])} episodes for {sets[0].batch_size[0]} top-k trajectories")
     tracked, episodes = [], []
-    for i, t in enumerate(tqdm(sets, desc=f"{env_name} tracked paths (top-k, final set)", disable=not progress)):
-        returns, eps = original_tracked if i == 0 and original_tracked is not None else locomotion_tracked_returns(
+    for t, given in tqdm(zip(sets, (original_tracked, None)), total=len(sets),
+                         desc=f"{env_name} tracked paths (top-k, final set)", disable=not progress):
+        returns, eps = given if given is not None else locomotion_tracked_returns(
             env_name, t, scale=scale, candidates=candidates, noise=noise, uniform=uniform, lookahead=lookahead,
             seed=seed)
         tracked.append(returns)
