@@ -30,10 +30,10 @@ sys.path.insert(0, str(ROOT))
 
 from torchrl_ftb.analysis import (  # noqa: E402
     locomotion_open_loop_improvement,
+    TrackedTopK,
     locomotion_tracked_improvement,
-    locomotion_tracked_returns,
-    observation_scale,
     save_figure,
+    track_top_k,
 )
 from torchrl_ftb.augmentation import load_supplement  # noqa: E402
 from torchrl_ftb.data import true_return  # noqa: E402
@@ -46,15 +46,14 @@ def top_trajectories(data, top_k: int):
     return data[true_return(data).argsort(descending=True)[:top_k]]
 
 
-def track_top(dataset: str, top, *, candidates: int, seed: int) -> tuple[torch.Tensor, list[dict]]:
+def track_top(dataset: str, top, *, candidates: int, seed: int) -> TrackedTopK:
     """The top-k tracked once, for every supplement's reading (``original_tracked`` of
-    :func:`~torchrl_ftb.analysis.locomotion_tracked_improvement`)."""
-    return locomotion_tracked_returns(dataset.split("-", 1)[0], top, scale=observation_scale(top),
-                                      candidates=candidates, seed=seed)
+    :func:`~torchrl_ftb.analysis.locomotion_tracked_improvement`, which checks the options match)."""
+    return track_top_k(dataset.split("-", 1)[0], top, candidates=candidates, seed=seed)
 
 
 def readings(dataset: str, top, supplement_path: str | Path, *, candidates: int, seed: int,
-             top_tracked: tuple[torch.Tensor, list[dict]] | None = None) -> dict:
+             top_tracked: TrackedTopK | None = None) -> dict:
     """The top-k trajectories ``top`` of the ``dataset`` -> the supplement, claimed / open loop / tracked (module
     docstring); ``top_tracked``: :func:`track_top` of ``top`` with the same options (default: tracked here)."""
     env = dataset.split("-", 1)[0]

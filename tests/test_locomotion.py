@@ -348,7 +348,7 @@ def test_lookahead_tracker_reproduces_a_recorded_path_and_is_checked(report_rows
 
     from omegaconf import OmegaConf
 
-    from torchrl_ftb.analysis import locomotion_tracked_improvement, locomotion_tracked_returns, observation_scale
+    from torchrl_ftb.analysis import locomotion_tracked_improvement, track_top_k
     from torchrl_ftb.envs import track_locomotion_paths
     from torchrl_ftb.testing import load_script
 
@@ -359,13 +359,23 @@ def test_lookahead_tracker_reproduces_a_recorded_path_and_is_checked(report_rows
     assert out["tracked"]["true_return_mean_before"] == pytest.approx(recorded_return, abs=1e-3)
     assert out["fidelity"]["path_error_median"] < 1e-4
     # the top-k tracked once and handed in reads the same (what bench/supplement_readings.py does per supplement)
-    top = locomotion_tracked_returns("hopper", recorded, scale=observation_scale(recorded), candidates=8, lookahead=4)
+    top = track_top_k("hopper", recorded, candidates=8, lookahead=4)
     again = locomotion_tracked_improvement(final, recorded, torch.tensor([False, True]), env_name="hopper",
                                            candidates=8, lookahead=4, original_tracked=top)
     assert again == out
-    with pytest.raises(ValueError, match="original_tracked holds 2 returns and 2 episodes for 1 top-k"):
+    # ... and one tracked with other options, or from other trajectories, is refused
+    with pytest.raises(ValueError, match="other options: candidates=8 there, 64 here, lookahead=4 there, 1 here"):
         locomotion_tracked_improvement(final, recorded, torch.tensor([False, True]), env_name="hopper",
-                                       original_tracked=(top[0].repeat(2), top[1] * 2))
+                                       original_tracked=top)
+    with pytest.raises(ValueError, match="other options: seed=0 there, 1 here"):
+        locomotion_tracked_improvement(final, recorded, torch.tensor([False, True]), env_name="hopper",
+                                       candidates=8, lookahead=4, seed=1, original_tracked=top)
+    with pytest.raises(ValueError, match="tracked from other trajectories"):
+        locomotion_tracked_improvement(recorded, final[1:], torch.tensor([False]), env_name="hopper",
+                                       candidates=8, lookahead=4, original_tracked=top)
+    with pytest.raises(TypeError, match="must be a TrackedTopK"):
+        locomotion_tracked_improvement(final, recorded, torch.tensor([False, True]), env_name="hopper",
+                                       candidates=8, lookahead=4, original_tracked=tuple(top)[:2])
     with pytest.raises(ValueError, match="lookahead >= 1"):
         track_locomotion_paths("hopper", recorded["observation"], recorded["action"], [10], lookahead=0)
     recipe = load_script(Path(__file__).resolve().parents[1] / "recipes" / "ftb_offline.py", "recipe_lookahead")

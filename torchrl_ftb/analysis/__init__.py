@@ -22,14 +22,17 @@ from torchrl_ftb.analysis.replay import (
     summarize_samples,
 )
 from torchrl_ftb.analysis.tracking import (
+    TrackedTopK,
     locomotion_tracked_improvement,
     locomotion_tracked_returns,
     observation_scale,
     track_paths,
+    track_top_k,
     tracked_improvement,
 )
 
 __all__ = [
+    "TrackedTopK",
     "dynamics_error",
     "ended_early",
     "episode_jobs",
@@ -55,6 +58,7 @@ __all__ = [
     "summarize_samples",
     "toy_oracle_step",
     "track_paths",
+    "track_top_k",
     "tracked_improvement",
     "trajectory_distances",
 ]

@@ -25,6 +25,8 @@ BENCHMARKS.md's session 35, 20 steps of lookahead tracked 161 where one step tra
 """
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import torch
 from tensordict import TensorDictBase
 from tqdm.auto import tqdm
@@ -217,10 +219,68 @@ def locomotion_tracked_returns(env_name: str, trajs: TensorDictBase, *, scale: t
     return torch.tensor([float(ep["reward"].sum()) for ep in eps], dtype=torch.float64), eps
 
 
+class TrackedTopK(NamedTuple):
+    """A top-k tracked once (:func:`track_top_k`), to read several final sets against it with
+    :func:`locomotion_tracked_improvement` (``original_tracked=``) without tracking it again.
+
+    It carries what it was tracked from and how, so a reading with other trajectories, another env or other tracker
+    options is refused instead of mixing two trackers' numbers."""
+
+    returns: torch.Tensor
+    episodes: list[dict]
+    observation: torch.Tensor
+    options: dict
+
+
+def _tracker_options(env_name: str, *, candidates: int, noise: float, uniform: float, lookahead: int,
+                     seed: int) -> dict:
+    return {"env_name": env_name, "candidates": int(candidates), "noise": float(noise), "uniform": float(uniform),
+            "lookahead": int(lookahead), "seed": int(seed)}
+
+
+def track_top_k(env_name: str, original: TensorDictBase, *, candidates: int = 64, noise: float = 0.3,
+                uniform: float = 0.5, lookahead: int = 1, seed: int = 0) -> TrackedTopK:
+    """The top-k ``original`` tracked the way :func:`locomotion_tracked_improvement` tracks it (actions clipped,
+    distance scaled by its own :func:`observation_scale`), with its options recorded.
+
+    Example:
+        >>> from torchrl_ftb.envs import make_locomotion_env
+        >>> td = make_locomotion_env("hopper", seed=0).rollout(8)
+        >>> trajs = td.select("observation", "action").unsqueeze(0)
+        >>> trajs["mask"] = torch.ones(1, 8, dtype=torch.bool)
+        >>> top = track_top_k("hopper", trajs, candidates=4)
+        >>> out = locomotion_tracked_improvement(trajs, trajs, torch.tensor([True]), env_name="hopper", candidates=4,
+        ...                                      original_tracked=top)
+        >>> out["tracked"]["true_return_mean_before"] == float(top.returns[0])
+        True
+    """
+    options = _tracker_options(env_name, candidates=candidates, noise=noise, uniform=uniform, lookahead=lookahead,
+                               seed=seed)
+    t = clip_actions(original.select("observation", "action", "mask").to("cpu").clone(), 1.0)
+    returns, episodes = locomotion_tracked_returns(env_name, t, scale=observation_scale(t), candidates=candidates,
+                                                   noise=noise, uniform=uniform, lookahead=lookahead, seed=seed)
+    return TrackedTopK(returns, episodes, t["observation"], options)
+
+
+def _checked_top_tracked(given: TrackedTopK, top: TensorDictBase, options: dict) -> TrackedTopK:
+    """``given`` if it was tracked from ``top`` with ``options``, else a ValueError naming what differs."""
+    name = "locomotion_tracked_improvement: original_tracked"
+    if not isinstance(given, TrackedTopK):
+        raise TypeError(f"{name} must be a TrackedTopK (track_top_k), got {type(given).__name__}")
+    differ = {k: (given.options.get(k), v) for k, v in options.items() if given.options.get(k) != v}
+    if differ:
+        raise ValueError(f"{name} was tracked with other options: "
+                         + ", ".join(f"{k}={a!r} there, {b!r} here" for k, (a, b) in differ.items()))
+    if given.observation.shape != top["observation"].shape or not torch.equal(given.observation, top["observation"]):
+        raise ValueError(f"{name} was tracked from other trajectories ({tuple(given.observation.shape)} observations) "
+                         f"than this top-k ({tuple(top['observation'].shape)})")
+    return given
+
+
 def locomotion_tracked_improvement(final: TensorDictBase, original: TensorDictBase, generated: torch.Tensor, *,
                                    env_name: str, candidates: int = 64, noise: float = 0.3, uniform: float = 0.5,
                                    lookahead: int = 1, seed: int = 0, progress: bool = False,
-                                   original_tracked: tuple[torch.Tensor, list[dict]] | None = None) -> dict:
+                                   original_tracked: TrackedTopK | None = None) -> dict:
     """The flow's improvement (original top-k -> final set) on locomotion with every path tracked in closed loop.
 
     Every trajectory of both sets is tracked from its own first state by
@@ -231,9 +291,9 @@ def locomotion_tracked_improvement(final: TensorDictBase, original: TensorDictBa
     Args:
         final, original, generated, env_name, progress: as
             :func:`~torchrl_ftb.analysis.locomotion_open_loop_improvement`.
-        original_tracked: the top-k already tracked, :func:`locomotion_tracked_returns` of ``original`` with
-            ``scale=observation_scale(original)`` and this call's tracker options (deterministic given them), to
-            read several final sets against one top-k without tracking it again; default: tracked here.
+        original_tracked: the top-k already tracked, :func:`track_top_k` of ``original`` with this call's
+            ``env_name`` and tracker options (checked: other options or other trajectories raise), to read
+            several final sets against one top-k without tracking it again; default: tracked here.
 
     Returns:
         ``horizon`` (None: plain returns), ``lookahead``, ``tracked`` and ``claimed`` (``return_summary``, top-k ->
@@ -253,14 +313,14 @@ def locomotion_tracked_improvement(final: TensorDictBase, original: TensorDictBa
     """
     generated, sets, claimed = locomotion_sets("locomotion_tracked_improvement", env_name, final, original, generated)
     scale = observation_scale(sets[0])
-    if original_tracked is not None and (len(original_tracked[0]) != sets[0].batch_size[0]
-                                         or len(original_tracked[1]) != sets[0].batch_size[0]):
-        raise ValueError(f"locomotion_tracked_improvement: original_tracked holds {len(original_tracked[0])} returns "
-                         f"and {len(original_tracked[1])} episodes for {sets[0].batch_size[0]} top-k trajectories")
+    if original_tracked is not None:
+        options = _tracker_options(env_name, candidates=candidates, noise=noise, uniform=uniform,
+                                   lookahead=lookahead, seed=seed)
+        original_tracked = _checked_top_tracked(original_tracked, sets[0], options)
     tracked, episodes = [], []
     for t, given in tqdm(zip(sets, (original_tracked, None)), total=len(sets),
                          desc=f"{env_name} tracked paths (top-k, final set)", disable=not progress):
-        returns, eps = given if given is not None else locomotion_tracked_returns(
+        returns, eps = given[:2] if given is not None else locomotion_tracked_returns(
             env_name, t, scale=scale, candidates=candidates, noise=noise, uniform=uniform, lookahead=lookahead,
             seed=seed)
         tracked.append(returns)
