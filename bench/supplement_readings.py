@@ -29,8 +29,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from torchrl_ftb.analysis import (  # noqa: E402
-    locomotion_open_loop_improvement,
     TrackedTopK,
+    locomotion_open_loop_improvement,
     locomotion_tracked_improvement,
     save_figure,
     track_top_k,

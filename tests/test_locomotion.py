@@ -373,6 +373,11 @@ def test_lookahead_tracker_reproduces_a_recorded_path_and_is_checked(report_rows
     with pytest.raises(ValueError, match="tracked from other trajectories"):
         locomotion_tracked_improvement(recorded, final[1:], torch.tensor([False]), env_name="hopper",
                                        candidates=8, lookahead=4, original_tracked=top)
+    shorter = recorded.clone()
+    shorter["mask"][:, -1] = False
+    with pytest.raises(ValueError, match="their observations or masks differ"):
+        locomotion_tracked_improvement(shorter, shorter, torch.tensor([False]), env_name="hopper",
+                                       candidates=8, lookahead=4, original_tracked=top)
     with pytest.raises(TypeError, match="must be a TrackedTopK"):
         locomotion_tracked_improvement(final, recorded, torch.tensor([False, True]), env_name="hopper",
                                        candidates=8, lookahead=4, original_tracked=tuple(top)[:2])

@@ -229,6 +229,7 @@ class TrackedTopK(NamedTuple):
     returns: torch.Tensor
     episodes: list[dict]
     observation: torch.Tensor
+    mask: torch.Tensor
     options: dict
 
 
@@ -259,7 +260,7 @@ def track_top_k(env_name: str, original: TensorDictBase, *, candidates: int = 64
     t = clip_actions(original.select("observation", "action", "mask").to("cpu").clone(), 1.0)
     returns, episodes = locomotion_tracked_returns(env_name, t, scale=observation_scale(t), candidates=candidates,
                                                    noise=noise, uniform=uniform, lookahead=lookahead, seed=seed)
-    return TrackedTopK(returns, episodes, t["observation"], options)
+    return TrackedTopK(returns, episodes, t["observation"], t["mask"], options)
 
 
 def _checked_top_tracked(given: TrackedTopK, top: TensorDictBase, options: dict) -> TrackedTopK:
@@ -271,9 +272,12 @@ def _checked_top_tracked(given: TrackedTopK, top: TensorDictBase, options: dict)
     if differ:
         raise ValueError(f"{name} was tracked with other options: "
                          + ", ".join(f"{k}={a!r} there, {b!r} here" for k, (a, b) in differ.items()))
-    if given.observation.shape != top["observation"].shape or not torch.equal(given.observation, top["observation"]):
-        raise ValueError(f"{name} was tracked from other trajectories ({tuple(given.observation.shape)} observations) "
-                         f"than this top-k ({tuple(top['observation'].shape)})")
+    same = all(a.shape == b.shape and torch.equal(a, b)
+               for a, b in ((given.observation, top["observation"]), (given.mask, top["mask"])))
+    if not same:
+        raise ValueError(f"{name} was tracked from other trajectories than this top-k: their observations or masks "
+                         f"differ (observations {tuple(given.observation.shape)} there, "
+                         f"{tuple(top['observation'].shape)} here)")
     return given
 
 
