@@ -179,13 +179,19 @@ def samples_mean(samples: list[dict], key: str) -> float | None:
     return float(np.mean([float(x[key]) for x in samples])) if samples else None
 
 
+def locomotion_paths(trajs: TensorDictBase) -> TensorDictBase:
+    """``trajs``' trajectory keys (``observation``, ``action``, ``mask``) on CPU, a copy, with actions clipped to
+    ``[-1, 1]``: what every locomotion reading executes or tracks."""
+    return clip_actions(trajs.select("observation", "action", "mask").to("cpu").clone(), 1.0)
+
+
 def locomotion_sets(name: str, env_name: str, final: TensorDictBase, original: TensorDictBase,
                     generated: torch.Tensor) -> tuple[torch.Tensor, list[TensorDictBase], list[torch.Tensor]]:
     """The locomotion readings' shared input: ``(generated flags, [top-k, final set], their claimed returns)``, the
     sets on CPU with actions clipped to ``[-1, 1]`` and trajectory keys only, the claimed returns the exact reward of
     each ``(s, a)`` summed (``float64 [K]`` each)."""
     generated = checked_generated(name, final, generated)
-    sets = [clip_actions(t.select("observation", "action", "mask").to("cpu").clone(), 1.0) for t in (original, final)]
+    sets = [locomotion_paths(t) for t in (original, final)]
     reward_fn = true_reward_fn(env_name)
     return generated, sets, [masked_true_returns(t, reward_fn)[:, 0] for t in sets]
 
@@ -333,7 +339,7 @@ def locomotion_replays(env_name: str, trajs: TensorDictBase) -> tuple[torch.Tens
         >>> abs(float(returns[0]) - float(td["next", "reward"].sum())) < 1e-3
         True
     """
-    t = clip_actions(trajs.select("observation", "action", "mask").to("cpu").clone(), 1.0)
+    t = locomotion_paths(trajs)
     lengths = t["mask"].sum(-1).tolist()
     episodes = replay_locomotion_actions(env_name, t["observation"][:, 0],
                                          [t["action"][i, :n] for i, n in enumerate(lengths)])

@@ -35,6 +35,7 @@ from torchrl_ftb.analysis.replay import (
     checked_final_set,
     ended_early,
     episode_jobs,
+    locomotion_paths,
     locomotion_sets,
     match_rows,
     metaworld_state_returns,
@@ -211,7 +212,7 @@ def locomotion_tracked_returns(env_name: str, trajs: TensorDictBase, *, scale: t
         >>> abs(float(returns[0]) - float(td["next", "reward"].sum())) < 1e-3
         True
     """
-    t = clip_actions(trajs.select("observation", "action", "mask").to("cpu").clone(), 1.0)
+    t = locomotion_paths(trajs)
     lengths = [int(n) for n in t["mask"].sum(-1).tolist()]
     eps = track_locomotion_paths(env_name, t["observation"], t["action"], lengths,
                                  scale=observation_scale(t) if scale is None else torch.as_tensor(scale).cpu(),
@@ -257,7 +258,7 @@ def track_top_k(env_name: str, original: TensorDictBase, *, candidates: int = 64
     """
     options = _tracker_options(env_name, candidates=candidates, noise=noise, uniform=uniform, lookahead=lookahead,
                                seed=seed)
-    t = clip_actions(original.select("observation", "action", "mask").to("cpu").clone(), 1.0)
+    t = locomotion_paths(original)
     returns, episodes = locomotion_tracked_returns(env_name, t, scale=observation_scale(t), candidates=candidates,
                                                    noise=noise, uniform=uniform, lookahead=lookahead, seed=seed)
     return TrackedTopK(returns, episodes, t["observation"], t["mask"], options)
