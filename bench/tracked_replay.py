@@ -10,6 +10,7 @@ and compare top-k -> final set with both sides read the same way. Open-loop repl
 Usage::
 
     python bench/tracked_replay.py --run-dirs RUN [RUN ...] --horizon 500 --out bench/results/tracked.json
+    python bench/tracked_replay.py --run-dirs RUN --candidates 4 --out F   # shooting: exact on the top-k
     python bench/tracked_replay.py --summarize bench/results/tracked_replay_s31/*.json
 """
 from __future__ import annotations
@@ -30,12 +31,15 @@ from torchrl_ftb.analysis import tracked_improvement  # noqa: E402
 from torchrl_ftb.policy import fit_path_tracker  # noqa: E402
 
 
-def tracked(run: Path, *, horizon: int, tracker_steps: int, seed: int, progress: bool) -> dict:
-    """:func:`torchrl_ftb.analysis.tracked_improvement` of a finished run directory's final set."""
+def tracked(run: Path, *, horizon: int, tracker_steps: int, seed: int, progress: bool, candidates: int = 1,
+            noise: float = 0.3) -> dict:
+    """:func:`torchrl_ftb.analysis.tracked_improvement` of a finished run directory's final set (``candidates``
+    > 1: shooting in the simulator, :func:`torchrl_ftb.analysis.track_paths`)."""
     cfg, data, meta, final, original, generated, rows = load_flow(run)
     tracker = fit_path_tracker(data, steps=tracker_steps, seed=seed, progress=progress)
     out = tracked_improvement(final, original, generated, data, meta, task=str(cfg.env.name), horizon=horizon,
-                              tracker=tracker, original_rows=rows, progress=progress)
+                              tracker=tracker, original_rows=rows, candidates=candidates, noise=noise,
+                              progress=progress)
     return {"env": str(cfg.env.name), "seed": int(cfg.seed), "top_k": int(original.batch_size[0]),
             "inpaint_start": bool(cfg.diffuser.get("inpaint_start", False)), **out}
 
@@ -92,15 +96,20 @@ def main() -> None:
     parser.add_argument("--horizon", type=int, default=500, help="the stop-rule return's horizon (Meta-World: 500)")
     parser.add_argument("--tracker-steps", type=int, default=4000, help="Adam steps fitting the tracker")
     parser.add_argument("--seed", type=int, default=0, help="the tracker's seed")
+    parser.add_argument("--candidates", type=int, default=1,
+                        help="actions tried per step: 1 = the tracker alone; more = shooting in the simulator (the "
+                             "path's own action, the tracker's, perturbations), exact on recorded paths")
+    parser.add_argument("--noise", type=float, default=0.3, help="std of the shooting's perturbations")
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "tracked_replay.json")
     parser.add_argument("--no-progress", action="store_true")
     args = runs_from_args(parser, summarize)
     if args is None:
         return
     measure_runs(args.run_dirs, args.out, {"horizon": args.horizon, "tracker_steps": args.tracker_steps,
-                                           "seed": args.seed},
+                                           "seed": args.seed, "candidates": args.candidates, "noise": args.noise},
                  lambda run: tracked(run, horizon=args.horizon, tracker_steps=args.tracker_steps, seed=args.seed,
-                                     progress=not args.no_progress), describe)
+                                     progress=not args.no_progress, candidates=args.candidates, noise=args.noise),
+                 describe)
 
 
 if __name__ == "__main__":

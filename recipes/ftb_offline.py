@@ -627,6 +627,15 @@ def tracker_lookahead(cfg: DictConfig) -> int:
     return steps
 
 
+def tracker_candidates(cfg: DictConfig) -> int:
+    """``tracker.candidates``: actions the Meta-World ``analysis.tracked`` reading tries per step (>= 1; default 1,
+    the inverse-dynamics tracker alone; more shoots in the simulator, :func:`torchrl_ftb.analysis.track_paths`)."""
+    n = int(cfg.get("tracker", {}).get("candidates", 1))
+    if n < 1:
+        raise ValueError(f"tracker.candidates={n}: must be >= 1")
+    return n
+
+
 def path_tracker(cfg: DictConfig, run: RunDir, trajs: TensorDictBase, *, progress: bool) -> PathTracker:
     """The goal-conditioned inverse-dynamics tracker that ``bc.relabel_actions`` and ``analysis.tracked`` share
     (:func:`torchrl_ftb.policy.fit_path_tracker` on the dataset, ``tracker.steps`` Adam steps, seeded by
@@ -747,7 +756,8 @@ def tracked_analysis(cfg: DictConfig, run: RunDir, flow: dict, trajs: TensorDict
         tracker = path_tracker(cfg, run, trajs, progress=progress)
         out = tracked_improvement(flow["trajectories"], flow["original"], source, trajs, meta,
                                   task=str(cfg.env.name), horizon=horizon, tracker=tracker,
-                                  original_rows=flow.get("original_indices"), progress=progress)
+                                  original_rows=flow.get("original_indices"), candidates=tracker_candidates(cfg),
+                                  progress=progress)
         extra = {"tracker_steps": tracker_steps(cfg)}
     else:
         return None  # no goals and starts to track from (toy, D4RL/Minari Meta-World files)
@@ -968,6 +978,7 @@ def run(cfg: DictConfig) -> dict:
     inpaint_start(cfg)
     tracker_steps(cfg)
     tracker_lookahead(cfg)
+    tracker_candidates(cfg)
     validity_reference_steps(cfg)
     if flow_filter(cfg) == "true_return" and not cfg.flow.true_reward:
         raise ValueError("flow.filter=true_return ranks and accepts by the ground-truth return: it needs "

@@ -386,3 +386,63 @@ def test_tracked_replay_reads_both_sides_through_the_same_tracker(tiny_dataset, 
     with pytest.raises(ValueError, match="final-set originals"):  # an original the top-k does not hold
         tracked_improvement(keep[[0, 2]], keep[[1, 3]], torch.tensor([True, False]), td, meta,
                             task="button-press-v3", horizon=150, tracker=tracker, original_rows=torch.tensor([1, 3]))
+
+
+@pytest.mark.integration
+def test_shooting_tracker_reproduces_recorded_paths_and_corrects_wrong_actions(tiny_dataset, tmp_path):
+    """MetaWorldShootingController tries actions in the simulator from the state it reached: a recorded path's own
+    actions land on it, so it is reproduced exactly; given wrong own actions and the right ones as its proposal it
+    follows the path where the wrong actions open loop leave it. The analysis reading with candidates > 1
+    (``tracker.candidates``) therefore tracks the recorded top-k to their recorded returns (fidelity 1)."""
+    import numpy as np
+    from omegaconf import OmegaConf
+
+    from torchrl_ftb.analysis import track_paths, tracked_improvement
+    from torchrl_ftb.analysis.replay import episode_jobs
+    from torchrl_ftb.data.labels import true_return
+    from torchrl_ftb.datasets.metaworld import generate_metaworld_episodes
+    from torchrl_ftb.envs import MetaWorldShootingController
+    from torchrl_ftb.policy import fit_path_tracker
+
+    td, meta, cache = tiny_dataset
+    seed, task = int(meta["seed"]), "button-press-v3"
+    row = 2  # the random group's episode: 150 steps of contact-free wandering
+    n = int(td["mask"][row].sum())
+    path, acts = td["observation"][row].double().numpy(), td["action"][row].double().numpy()
+    job = episode_jobs(meta, torch.tensor([row]))
+
+    def run(controller):
+        return generate_metaworld_episodes(task, job, seed=seed, noise=0.0, max_steps=150, controllers=[controller])[0]
+
+    exact = run(MetaWorldShootingController(path, n, own_actions=acts, candidates=4, seed=0))
+    np.testing.assert_allclose(exact["reward"], td["next", "reward"][row, :n, 0].numpy(), rtol=1e-5, atol=1e-5)
+    wrong = np.clip(acts + np.random.default_rng(0).normal(0.0, 0.8, acts.shape), -1.0, 1.0)
+    steps = iter(acts)
+    fixed = run(MetaWorldShootingController(path, n, own_actions=wrong, proposal=lambda obs: next(steps),
+                                            candidates=2, tolerance=1e-5))
+    open_loop = run(MetaWorldShootingController(path, n, own_actions=wrong, candidates=1))
+    off = lambda ep: float(np.linalg.norm(ep["observation"][:n, :3] - path[:n, :3], axis=-1).max())  # noqa: E731
+    assert off(fixed) < 1e-4 < 0.01 < off(open_loop)
+    with pytest.raises(RuntimeError, match="attach"):
+        MetaWorldShootingController(path, n, own_actions=acts)(path[0])
+    with pytest.raises(ValueError, match="candidates >= 1"):
+        MetaWorldShootingController(path, n, own_actions=acts, candidates=0)
+    with pytest.raises(ValueError, match="one row per step"):
+        MetaWorldShootingController(path, n, own_actions=acts[:5])
+    tracker = fit_path_tracker(td, steps=5, hidden=8)
+    with pytest.raises(ValueError, match="needs the paths' own actions"):
+        track_paths(task, job, td["observation"][[row]], [n], tracker, seed=seed, max_steps=150, candidates=3)
+
+    # the analysis reading: the recorded top-k tracked exactly, whatever the (barely fitted) tracker proposes
+    root, cfg, keep, final, original = _fake_run_dir(td, cache, tmp_path)
+    rows = torch.tensor([1, 3, 0, 2])
+    out = tracked_improvement(final, original, torch.tensor([1, 1, 0, 0]) > 0, td, meta, task=task, horizon=150,
+                              tracker=tracker, original_rows=rows, candidates=3)
+    recorded = true_return(td, horizon=150).double()[rows]
+    assert out["fidelity"]["tracked_mean"] == pytest.approx(float(recorded.mean()), rel=1e-5)
+    assert out["fidelity"]["tracked_max"] == pytest.approx(float(recorded.max()), rel=1e-5)
+    assert out["fidelity"]["hand_deviation_max"] < 1e-4 and out["shooting"] == {"candidates": 3, "noise": 0.3}
+    assert out["tracked"]["true_return_mean_after"] == pytest.approx(out["tracked"]["true_return_mean_before"])
+    recipe = load_script(root / "recipes" / "ftb_offline.py", "recipe_shooting_mw")
+    with pytest.raises(ValueError, match="tracker.candidates=0"):
+        recipe.tracker_candidates(OmegaConf.merge(cfg, {"tracker": {"candidates": 0}}))

@@ -25,6 +25,7 @@ BENCHMARKS.md's session 35, 20 steps of lookahead tracked 161 where one step tra
 """
 from __future__ import annotations
 
+import zlib
 from typing import NamedTuple
 
 import torch
@@ -45,17 +46,25 @@ from torchrl_ftb.analysis.replay import (
 )
 from torchrl_ftb.data.labels import true_return
 from torchrl_ftb.datasets.metaworld import generate_metaworld_episodes
-from torchrl_ftb.envs import track_locomotion_paths
+from torchrl_ftb.envs import MetaWorldShootingController, track_locomotion_paths
 from torchrl_ftb.flow.flow import clip_actions, return_summary
 from torchrl_ftb.policy.inverse_dynamics import PathTracker
 
 
 def track_paths(task: str, jobs: list[tuple[int, int]], paths: torch.Tensor, lengths: list[int],
-                tracker: PathTracker, *, seed: int, max_steps: int, on_episode=None) -> list[dict]:
+                tracker: PathTracker, *, seed: int, max_steps: int, on_episode=None,
+                actions: torch.Tensor | None = None, candidates: int = 1, noise: float = 0.3) -> list[dict]:
     """Closed-loop tracked replays: each dataset episode's goal and start (``jobs``, :func:`episode_jobs`), then
     ``tracker`` heading for its path (``paths [K, H, D]`` observations, ``lengths`` valid steps each) until the
     data's stop rule or ``max_steps``. Returns per-step episodes, as
     :func:`~torchrl_ftb.datasets.metaworld.replay_metaworld_actions`.
+
+    With ``candidates > 1`` each step shoots in the simulator instead
+    (:class:`~torchrl_ftb.envs.MetaWorldShootingController`): the path's own action (``actions [K, H, 4]``),
+    the tracker's and ``candidates - 2`` perturbations of it (std ``noise``), keeping the one that lands nearest
+    the path's next hand, gripper and object. It reproduces a recorded path exactly and follows a generated one
+    at least as the better of its own actions and the tracker step by step; each path's perturbations are
+    seeded by ``seed`` and the path's own numbers, so a path reads the same whatever is tracked with it.
 
     Example:
         >>> eps = track_paths("button-press-v3", [(0, 0)], data["observation"][:1], [100], tracker,
@@ -64,8 +73,18 @@ def track_paths(task: str, jobs: list[tuple[int, int]], paths: torch.Tensor, len
     if len(jobs) != paths.shape[0] or len(lengths) != paths.shape[0]:
         raise ValueError(f"track_paths: {len(jobs)} jobs, {paths.shape[0]} paths and {len(lengths)} lengths; "
                          f"expected one of each per trajectory")
+    if candidates > 1 and (actions is None or actions.shape[:2] != paths.shape[:2]):
+        raise ValueError(f"track_paths: shooting with {candidates} candidates needs the paths' own actions "
+                         f"[{paths.shape[0]}, {paths.shape[1]}, 4], got "
+                         f"{None if actions is None else list(actions.shape)}")
     paths = paths.double().cpu().numpy()
     controllers = [tracker.controller(p, int(n)) for p, n in zip(paths, lengths)]
+    if candidates > 1:
+        acts = actions.double().cpu().numpy()
+        controllers = [MetaWorldShootingController(
+            p, int(n), own_actions=a, proposal=c, candidates=candidates, noise=noise,
+            seed=(int(seed), zlib.crc32(p[:int(n)].tobytes() + a[:int(n)].tobytes())))
+            for p, a, n, c in zip(paths, acts, lengths, controllers)]
     return generate_metaworld_episodes(task, jobs, seed=seed, noise=0.0, max_steps=max_steps,
                                        on_episode=on_episode, controllers=controllers)
 
@@ -91,6 +110,8 @@ def tracked_improvement(
     horizon: int,
     tracker: PathTracker,
     original_rows: torch.Tensor | None = None,
+    candidates: int = 1,
+    noise: float = 0.3,
     progress: bool = False,
 ) -> dict:
     """The flow's improvement (original top-k -> final set) with every trajectory's states tracked in closed loop.
@@ -104,6 +125,9 @@ def tracked_improvement(
         final, original, generated, data, meta, task, horizon, original_rows: as
             :func:`~torchrl_ftb.analysis.open_loop_improvement`.
         tracker: from :func:`fit_path_tracker` on ``data``.
+        candidates, noise: 1 (default): the tracker alone. More: shoot in the simulator (:func:`track_paths`),
+            which reproduces the recorded top-k exactly and reads every path, generated or recorded, as the best
+            of its own actions, the tracker's and perturbations, step by step.
         progress: a progress bar over the episodes.
 
     Returns:
@@ -128,11 +152,12 @@ def tracked_improvement(
     gen = final[generated]
     start_row, _ = nearest_start(gen["observation"][:, 0].float(), data_obs[:, 0])
     paths = torch.cat([original["observation"], gen["observation"]], 0)
+    actions = torch.cat([original["action"], gen["action"]], 0)
     lengths = [int(n) for n in torch.cat([original["mask"], gen["mask"]], 0).sum(-1).tolist()]
     jobs = episode_jobs(meta, torch.cat([rows, start_row]))
     bar = tqdm(total=len(jobs), desc=f"{task} tracked replays", disable=not progress)
     episodes = track_paths(task, jobs, paths, lengths, tracker, seed=int(meta["seed"]), max_steps=int(meta["max_steps"]),
-                           on_episode=lambda: bar.update(1))
+                           on_episode=lambda: bar.update(1), actions=actions, candidates=candidates, noise=noise)
     bar.close()
     tracked = replay_returns(episodes, horizon=horizon)[:, 1]
     success = torch.tensor([bool(ep["success"].any()) for ep in episodes])
@@ -171,7 +196,8 @@ def tracked_improvement(
                    "claimed_stop_rule_mean": float(claimed1[generated].mean()) if n_gen else None,
                    "tracked_stop_rule_mean": float(tracked[k:].mean()) if n_gen else None,
                    "off_path": int(off_path.sum())}
-    return {"horizon": horizon, "tracked": return_summary(tracked[:k], after),
+    return {"horizon": horizon, "shooting": {"candidates": int(candidates), "noise": float(noise)},
+            "tracked": return_summary(tracked[:k], after),
             "tracked_on_path": (return_summary(tracked[:k], after[~off_path]) if bool((~off_path).any())
                                 else {key: float("nan") for key in return_summary(tracked[:k], tracked[:k])}),
             "claimed": return_summary(claimed0, claimed1), "fidelity": fidelity, "generated": gen_summary,

@@ -90,7 +90,8 @@ def _run_episode(env, task: str, group: int, rng: np.random.Generator, *, noise:
     ``actions [L, 4]``: the episode's goal and start, then these actions open loop (clipped as the
     data's), stopping after ``L`` steps or at the stop rule, whichever comes first. ``controller``
     (``obs -> action``, called once per step in order): the episode's goal and start, then this
-    closed-loop controller instead of the group's policy."""
+    closed-loop controller instead of the group's policy; one with an ``attach`` method gets the unwrapped env
+    first (:class:`~torchrl_ftb.envs.MetaWorldShootingController`)."""
     name = GROUPS[group]
     tasks = metaworld_tasks()
     policy_task = -1
@@ -105,6 +106,8 @@ def _run_episode(env, task: str, group: int, rng: np.random.Generator, *, noise:
         policy_task = tasks.index(task)
     u = env.unwrapped
     policy = controller
+    if controller is not None and hasattr(controller, "attach"):  # a controller that shoots in the simulator
+        controller.attach(u)
     if policy is None and policy_task >= 0:  # a given controller needs no scripted policy built
         if tasks[policy_task] not in policies:
             policies[tasks[policy_task]] = scripted_policy(tasks[policy_task])

@@ -27,6 +27,8 @@ import zlib
 import numpy as np
 import torch
 
+from torchrl_ftb.envs.sim_state import restore_sim_state, save_sim_state
+
 __all__ = [
     "LOCOMOTION_ENVS",
     "D4RL_REF_SCORES",
@@ -125,21 +127,6 @@ def _set_from_obs(u, obs: np.ndarray) -> None:
 
     mujoco.mj_resetData(u.model, u.data)
     u.set_state(*_state_from_obs(u, obs))
-
-
-def _save_state(u) -> np.ndarray:
-    """The simulator's whole integration state (positions, velocities and the solver's warm start)."""
-    import mujoco
-
-    out = np.empty(mujoco.mj_stateSize(u.model, mujoco.mjtState.mjSTATE_INTEGRATION))
-    mujoco.mj_getState(u.model, u.data, out, mujoco.mjtState.mjSTATE_INTEGRATION)
-    return out
-
-
-def _restore_state(u, state: np.ndarray) -> None:
-    import mujoco
-
-    mujoco.mj_setState(u.model, u.data, state, mujoco.mjtState.mjSTATE_INTEGRATION)
 
 
 def _flat(x, name: str, dim: int | None = None) -> tuple[np.ndarray, tuple]:
@@ -326,7 +313,7 @@ def track_locomotion_paths(env_name: str, paths: torch.Tensor, actions: torch.Te
             action = np.clip(act[t], -1.0, 1.0)
             if t + 1 >= n or candidates == 1:
                 return action
-            saved = _save_state(u)  # each candidate starts from the same state, warm start included
+            saved = save_sim_state(u)  # each candidate starts from the same state, warm start included
             tries = np.concatenate([
                 action[None], rng.uniform(-1.0, 1.0, (num_uniform, action.shape[-1])),
                 np.clip(action + noise * rng.standard_normal((candidates - 1 - num_uniform, action.shape[-1])),
@@ -334,11 +321,11 @@ def track_locomotion_paths(env_name: str, paths: torch.Tensor, actions: torch.Te
             offsets = tries - action
             dist = np.zeros(candidates)
             for j, a in enumerate(tries):
-                _restore_state(u, saved)
+                restore_sim_state(u, saved)
                 for k in range(min(lookahead, n - 1 - t)):
                     u.do_simulation(a if k == 0 else np.clip(act[t + k] + offsets[j], -1.0, 1.0), u.frame_skip)
                     dist[j] += np.linalg.norm((u._get_obs() - path[t + 1 + k]) * inv_scale)
-            _restore_state(u, saved)
+            restore_sim_state(u, saved)
             return tries[int(dist.argmin())]
 
         return choose

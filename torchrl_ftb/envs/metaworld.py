@@ -29,6 +29,8 @@ from torchrl.data import Categorical, Composite
 from torchrl.envs import DoubleToFloat, GymWrapper, TransformedEnv
 from torchrl.envs.gym_like import BaseInfoDictReader
 
+from torchrl_ftb.envs.sim_state import restore_sim_state, save_sim_state
+
 __all__ = [
     "METAWORLD_MAX_EPISODE_STEPS",
     "METAWORLD_OBSERVATION_LAYOUT",
@@ -55,6 +57,7 @@ __all__ = [
     "METAWORLD_PHYSICS_PROXIES",
     "metaworld_physics_errors",
     "physics_limit",
+    "MetaWorldShootingController",
 ]
 
 METAWORLD_MAX_EPISODE_STEPS = 500
@@ -852,3 +855,105 @@ def metaworld_physics_errors(trajectories: TensorDictBase, *, hand_weights: torc
     if reach is not None:
         out[contact] = metaworld_contactless_object_path(trajectories, reach)
     return out
+
+
+class MetaWorldShootingController:
+    """A closed-loop controller for one observation path in a Meta-World env, with the simulator as its model.
+
+    The Meta-World form of :func:`~torchrl_ftb.envs.track_locomotion_paths`' greedy shooting. Every step it
+    tries, from the state the simulator reached, the path's own action at that step, the ``proposal``'s
+    action for the observation (e.g. a :meth:`~torchrl_ftb.policy.PathTracker.controller`, which heads for
+    the path's hand) and ``candidates - 2`` Gaussian perturbations of the proposal (std ``noise``, clipped to
+    ``[-1, 1]``). It keeps the one whose next hand position, gripper opening and object position land nearest
+    the path's next observation (``weights`` per part), trying them in that order and replacing the kept one
+    only by a candidate nearer by more than ``tolerance`` (m): so the own action wins its ties, and a path the
+    simulator can follow (a recorded one, float32-stored) is reproduced exactly, as the locomotion tracker
+    reproduces its recorded paths. Past the path's last step it aims at that last observation.
+
+    Hand positions (``obs[0:3]``) and the object's (``obs[4:7]``) are where a Meta-World plan says the
+    task happens; the gripper opening (``obs[3]``) is a unitless distance, weighted down by default.
+
+    The episode loop (:func:`~torchrl_ftb.datasets.metaworld.generate_metaworld_episodes`) calls
+    :meth:`attach` with its unwrapped env before the first step, then the controller once per step, in order.
+
+    Args:
+        path: ``[H, 39]`` observations; ``length``: its valid steps.
+        own_actions: ``[H, 4]`` the path's actions (clipped to ``[-1, 1]``).
+        proposal: ``obs -> action`` called once per step in order; None: the own action and perturbations
+            of it only.
+        candidates: actions tried per step (>= 1; 1: the proposal's, or the own action without one, untried).
+        noise: std of the perturbations.
+        weights: ``(hand, gripper, object)`` weights of the distance to the path's next observation.
+        tolerance: how much nearer (weighted metres) a later candidate must land to replace an earlier one.
+        seed: the perturbations' generator (``numpy.random.default_rng``'s seed; :func:`~torchrl_ftb.analysis.track_paths`
+            seeds each path by its own numbers).
+
+    Example:
+        >>> import numpy as np
+        >>> from torchrl_ftb.datasets.metaworld import generate_metaworld_episodes
+        >>> ep = generate_metaworld_episodes("button-press-v3", [(0, 0)], seed=0, noise=0.5, max_steps=20)[0]
+        >>> ctrl = MetaWorldShootingController(ep["observation"], len(ep["action"]), own_actions=ep["action"],
+        ...                                    candidates=4)
+        >>> again = generate_metaworld_episodes("button-press-v3", [(0, 0)], seed=0, noise=0.0, max_steps=20,
+        ...                                     controllers=[ctrl])[0]
+        >>> bool(np.allclose(again["reward"], ep["reward"]))
+        True
+    """
+
+    def __init__(self, path: np.ndarray, length: int, *, own_actions: np.ndarray,
+                 proposal: Callable[[np.ndarray], np.ndarray] | None = None, candidates: int = 4,
+                 noise: float = 0.3, weights: tuple[float, float, float] = (1.0, 0.1, 1.0),
+                 tolerance: float = 1e-3, seed: int | tuple[int, ...] = 0) -> None:
+        path, own_actions = np.asarray(path, np.float64), np.asarray(own_actions, np.float64)
+        if candidates < 1 or noise < 0 or tolerance < 0 or len(weights) != 3:
+            raise ValueError(f"MetaWorldShootingController: need candidates >= 1, noise >= 0, tolerance >= 0 and "
+                             f"three weights, got {candidates}, {noise}, {tolerance}, {weights}")
+        if path.ndim != 2 or own_actions.ndim != 2 or own_actions.shape[0] != path.shape[0] or not 1 <= length <= len(path):
+            raise ValueError(f"MetaWorldShootingController: path {list(path.shape)} and own_actions "
+                             f"{list(own_actions.shape)} need one row per step and 1 <= length ({length}) <= {len(path)}")
+        self.path, self.length = path, int(length)
+        self.own = np.clip(own_actions, -1.0, 1.0)
+        self.proposal, self.candidates, self.noise = proposal, int(candidates), float(noise)
+        self.weights, self.tolerance = tuple(float(w) for w in weights), float(tolerance)
+        self.rng = np.random.default_rng(seed)
+        self.env, self.step = None, 0
+
+    def attach(self, env) -> None:
+        """The unwrapped Meta-World env the episode runs in (``model``, ``data``, ``set_xyz_action``)."""
+        self.env = env
+
+    def _distance(self, target: np.ndarray) -> float:
+        cur = self.env._get_curr_obs_combined_no_goal()  # the current frame, without touching the frame stack
+        wh, wg, wo = self.weights
+        return float(wh * np.linalg.norm(cur[0:3] - target[0:3]) + wg * abs(cur[3] - target[3])
+                     + wo * np.linalg.norm(cur[4:7] - target[4:7]))
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        if self.env is None:
+            raise RuntimeError("MetaWorldShootingController: attach(env) before the first step")
+        t, self.step = self.step, self.step + 1
+        target = self.path[min(t + 1, self.length - 1)]
+        own = self.own[min(t, self.length - 1)]
+        proposed = None if self.proposal is None else np.clip(self.proposal(obs), -1.0, 1.0)
+        centre = own if proposed is None else proposed
+        tries = [own] if proposed is None else [own, proposed]
+        if self.candidates == 1:
+            return centre
+        extra = max(self.candidates - len(tries), 0)
+        tries = np.concatenate([np.stack(tries[:self.candidates]),
+                                np.clip(centre + self.noise * self.rng.standard_normal((extra, 4)), -1.0, 1.0)])
+        import mujoco
+
+        u = self.env
+        saved = save_sim_state(u)
+        best, best_dist = tries[0], np.inf
+        for a in tries:
+            restore_sim_state(u, saved)
+            u.set_xyz_action(a[:3])
+            u.do_simulation([a[-1], -a[-1]], n_frames=u.frame_skip)
+            mujoco.mj_forward(u.model, u.data)
+            dist = self._distance(target)
+            if dist < best_dist - self.tolerance:
+                best, best_dist = a, dist
+        restore_sim_state(u, saved)
+        return best
