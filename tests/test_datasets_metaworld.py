@@ -442,6 +442,12 @@ def test_shooting_tracker_reproduces_recorded_paths_and_corrects_wrong_actions(t
     assert out["fidelity"]["tracked_mean"] == pytest.approx(float(recorded.mean()), rel=1e-5)
     assert out["fidelity"]["tracked_max"] == pytest.approx(float(recorded.max()), rel=1e-5)
     assert out["fidelity"]["hand_deviation_max"] < 1e-4 and out["shooting"] == {"candidates": 3, "noise": 0.3}
+    # off path is judged against the tracker alone (shooting leaves real paths by nothing, generated ones by more)
+    alone = tracked_improvement(final, original, torch.tensor([1, 1, 0, 0]) > 0, td, meta, task=task, horizon=150,
+                                tracker=tracker, original_rows=rows)
+    assert out["fidelity"]["tracker_alone_hand_deviation_max"] == pytest.approx(alone["fidelity"]["hand_deviation_max"])
+    assert out["fidelity"]["tracker_alone_tracked_mean"] == pytest.approx(alone["fidelity"]["tracked_mean"])
+    assert out["generated"]["off_path"] == 0 and out["tracked_on_path"] == out["tracked"]
     assert out["tracked"]["true_return_mean_after"] == pytest.approx(out["tracked"]["true_return_mean_before"])
     recipe = load_script(root / "recipes" / "ftb_offline.py", "recipe_shooting_mw")
     with pytest.raises(ValueError, match="tracker.candidates=0"):
