@@ -62,9 +62,10 @@ def track_paths(task: str, jobs: list[tuple[int, int]], paths: torch.Tensor, len
     With ``candidates > 1`` each step shoots in the simulator instead
     (:class:`~torchrl_ftb.envs.MetaWorldShootingController`): the path's own action (``actions [K, H, 4]``),
     the tracker's and ``candidates - 2`` perturbations of it (std ``noise``), keeping the one that lands nearest
-    the path's next hand, gripper and object. It reproduces a recorded path exactly and follows a generated one
-    at least as the better of its own actions and the tracker step by step; each path's perturbations are
-    seeded by ``seed`` and the path's own numbers, so a path reads the same whatever is tracked with it.
+    the path's next hand, gripper and object. It reproduces a recorded path exactly; a generated one it follows
+    greedily, one step at a time, which is no upper bound of its own actions or of the tracker (a nearer next
+    state can lead off a path the own actions would have finished). Each path's perturbations are seeded by
+    ``seed`` and the path's own numbers, so a path reads the same whatever is tracked with it.
 
     Example:
         >>> eps = track_paths("button-press-v3", [(0, 0)], data["observation"][:1], [100], tracker,
@@ -126,8 +127,8 @@ def tracked_improvement(
             :func:`~torchrl_ftb.analysis.open_loop_improvement`.
         tracker: from :func:`fit_path_tracker` on ``data``.
         candidates, noise: 1 (default): the tracker alone. More: shoot in the simulator (:func:`track_paths`),
-            which reproduces the recorded top-k exactly and reads every path, generated or recorded, as the best
-            of its own actions, the tracker's and perturbations, step by step. Its off-path bound is then the
+            which reproduces the recorded top-k exactly and reads every path by a greedy choice, step by step,
+            among its own action, the tracker's and perturbations. Its off-path bound is then the
             largest hand deviation of the tracker alone on the top-k (tracked again for it; ``fidelity``'s
             ``tracker_alone_*``).
         progress: a progress bar over the episodes.
