@@ -610,30 +610,29 @@ def stage_flow(cfg, run: RunDir, trajs, scores, block_ids, sampler, model, true_
         "trajectories": res.trajectories, "original": res.original, "generated": res.generated}
 
 
+def _tracker_count(cfg: DictConfig, key: str, default: int) -> int:
+    """``tracker.<key>`` as an int >= 1 (``default`` when absent); a clear error naming the option otherwise."""
+    n = int(cfg.get("tracker", {}).get(key, default))
+    if n < 1:
+        raise ValueError(f"tracker.{key}={n}: must be >= 1")
+    return n
+
+
 def tracker_steps(cfg: DictConfig) -> int:
     """``tracker.steps``: Adam steps fitting the run's path tracker (>= 1; default 4000)."""
-    steps = int(cfg.get("tracker", {}).get("steps", 4000))
-    if steps < 1:
-        raise ValueError(f"tracker.steps={steps}: must be >= 1")
-    return steps
+    return _tracker_count(cfg, "steps", 4000)
 
 
 def tracker_lookahead(cfg: DictConfig) -> int:
     """``tracker.lookahead``: steps the locomotion shooting tracker of ``analysis.tracked`` scores each candidate
     action over (>= 1; default 1, greedy; :func:`torchrl_ftb.envs.track_locomotion_paths`)."""
-    steps = int(cfg.get("tracker", {}).get("lookahead", 1))
-    if steps < 1:
-        raise ValueError(f"tracker.lookahead={steps}: must be >= 1")
-    return steps
+    return _tracker_count(cfg, "lookahead", 1)
 
 
 def tracker_candidates(cfg: DictConfig) -> int:
     """``tracker.candidates``: actions the Meta-World ``analysis.tracked`` reading tries per step (>= 1; default 1,
     the inverse-dynamics tracker alone; more shoots in the simulator, :func:`torchrl_ftb.analysis.track_paths`)."""
-    n = int(cfg.get("tracker", {}).get("candidates", 1))
-    if n < 1:
-        raise ValueError(f"tracker.candidates={n}: must be >= 1")
-    return n
+    return _tracker_count(cfg, "candidates", 1)
 
 
 def path_tracker(cfg: DictConfig, run: RunDir, trajs: TensorDictBase, *, progress: bool) -> PathTracker:
