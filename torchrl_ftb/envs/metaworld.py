@@ -939,8 +939,8 @@ class MetaWorldShootingController:
         tries = [own] if proposed is None else [own, proposed]
         if self.candidates == 1:
             return centre
-        extra = max(self.candidates - len(tries), 0)
-        tries = np.concatenate([np.stack(tries[:self.candidates]),
+        extra = self.candidates - len(tries)  # >= 0: two fixed tries at most, and candidates >= 2 here
+        tries = np.concatenate([np.stack(tries),
                                 np.clip(centre + self.noise * self.rng.standard_normal((extra, 4)), -1.0, 1.0)])
         import mujoco
 
