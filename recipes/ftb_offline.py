@@ -624,8 +624,9 @@ def tracker_steps(cfg: DictConfig) -> int:
 
 
 def tracker_lookahead(cfg: DictConfig) -> int:
-    """``tracker.lookahead``: steps the locomotion shooting tracker of ``analysis.tracked`` scores each candidate
-    action over (>= 1; default 1, greedy; :func:`torchrl_ftb.envs.track_locomotion_paths`)."""
+    """``tracker.lookahead``: steps the shooting trackers of ``analysis.tracked`` score each candidate action over
+    (>= 1; default 1, greedy): locomotion's (:func:`torchrl_ftb.envs.track_locomotion_paths`) and Meta-World's with
+    ``tracker.candidates`` > 1 (:class:`torchrl_ftb.envs.MetaWorldShootingController`)."""
     return _tracker_count(cfg, "lookahead", 1)
 
 
@@ -756,7 +757,7 @@ def tracked_analysis(cfg: DictConfig, run: RunDir, flow: dict, trajs: TensorDict
         out = tracked_improvement(flow["trajectories"], flow["original"], source, trajs, meta,
                                   task=str(cfg.env.name), horizon=horizon, tracker=tracker,
                                   original_rows=flow.get("original_indices"), candidates=tracker_candidates(cfg),
-                                  progress=progress)
+                                  lookahead=tracker_lookahead(cfg), progress=progress)
         extra = {"tracker_steps": tracker_steps(cfg)}
     else:
         return None  # no goals and starts to track from (toy, D4RL/Minari Meta-World files)
@@ -824,8 +825,15 @@ def tracked_rows(tr: dict | None) -> list[tuple[str, str]]:
     locomotion = tr.get("horizon") is None
     lookahead = int(tr.get("lookahead") or 1)  # runs before session 35 did not record it: greedy
     shooting = "simulator shooting tracker" + (f", {lookahead}-step lookahead" if lookahead > 1 else "")
+    shot = tr.get("shooting") or {}  # Meta-World; runs before session 47 did not record it: the tracker alone
+    if int(shot.get("candidates", 1)) > 1:
+        look = int(shot.get("lookahead", 1))
+        shot_text = (f"; shooting, {int(shot['candidates'])} candidates"
+                     + (f", {look}-step lookahead" if look > 1 else ""))
+    else:
+        shot_text = ""
     rows = [((f"true return top-k tracked in closed loop ({shooting})" if locomotion else
-              f"true return top-k tracked in closed loop (stop rule, {int(tr['horizon'])} steps)")
+              f"true return top-k tracked in closed loop (stop rule, {int(tr['horizon'])} steps{shot_text})")
              + ": mean / max before -> after", _mean_max(tr["tracked"]))]
     if locomotion:
         rows.append(("tracker on the top-k: claimed -> tracked mean (scaled path error, median)",

@@ -389,7 +389,7 @@ def test_tracked_replay_reads_both_sides_through_the_same_tracker(tiny_dataset, 
 
 
 @pytest.mark.integration
-def test_shooting_tracker_reproduces_recorded_paths_and_corrects_wrong_actions(tiny_dataset, tmp_path):
+def test_shooting_tracker_reproduces_recorded_paths_and_corrects_wrong_actions(tiny_dataset, tmp_path, report_rows):
     """MetaWorldShootingController tries actions in the simulator from the state it reached: a recorded path's own
     actions land on it, so it is reproduced exactly; given wrong own actions and the right ones as its proposal it
     follows the path where the wrong actions open loop leave it. The analysis reading with candidates > 1
@@ -416,6 +416,10 @@ def test_shooting_tracker_reproduces_recorded_paths_and_corrects_wrong_actions(t
 
     exact = run(MetaWorldShootingController(path, n, own_actions=acts, candidates=4, seed=0))
     np.testing.assert_allclose(exact["reward"], td["next", "reward"][row, :n, 0].numpy(), rtol=1e-5, atol=1e-5)
+    # scored over 4 steps ahead: the own actions still land on every one of them, and each try starts from the
+    # state the simulator reached (restored), so the path is still reproduced exactly
+    ahead = run(MetaWorldShootingController(path, n, own_actions=acts, candidates=4, lookahead=4, seed=0))
+    np.testing.assert_allclose(ahead["reward"], exact["reward"], rtol=1e-6, atol=1e-6)
     wrong = np.clip(acts + np.random.default_rng(0).normal(0.0, 0.8, acts.shape), -1.0, 1.0)
     steps = iter(acts)
     fixed = run(MetaWorldShootingController(path, n, own_actions=wrong, proposal=lambda obs: next(steps),
@@ -429,6 +433,8 @@ def test_shooting_tracker_reproduces_recorded_paths_and_corrects_wrong_actions(t
         MetaWorldShootingController(path, n, own_actions=acts, candidates=0)
     with pytest.raises(ValueError, match="one row per step"):
         MetaWorldShootingController(path, n, own_actions=acts[:5])
+    with pytest.raises(ValueError, match="lookahead >= 1"):
+        MetaWorldShootingController(path, n, own_actions=acts, lookahead=0)
     tracker = fit_path_tracker(td, steps=5, hidden=8)
     with pytest.raises(ValueError, match="needs the paths' own actions"):
         track_paths(task, job, td["observation"][[row]], [n], tracker, seed=seed, max_steps=150, candidates=3)
@@ -441,7 +447,8 @@ def test_shooting_tracker_reproduces_recorded_paths_and_corrects_wrong_actions(t
     recorded = true_return(td, horizon=150).double()[rows]
     assert out["fidelity"]["tracked_mean"] == pytest.approx(float(recorded.mean()), rel=1e-5)
     assert out["fidelity"]["tracked_max"] == pytest.approx(float(recorded.max()), rel=1e-5)
-    assert out["fidelity"]["hand_deviation_max"] < 1e-4 and out["shooting"] == {"candidates": 3, "noise": 0.3}
+    assert out["fidelity"]["hand_deviation_max"] < 1e-4
+    assert out["shooting"] == {"candidates": 3, "noise": 0.3, "lookahead": 1}
     # off path is judged against the tracker alone (shooting leaves real paths by nothing, generated ones by more)
     alone = tracked_improvement(final, original, torch.tensor([1, 1, 0, 0]) > 0, td, meta, task=task, horizon=150,
                                 tracker=tracker, original_rows=rows)
@@ -452,3 +459,6 @@ def test_shooting_tracker_reproduces_recorded_paths_and_corrects_wrong_actions(t
     recipe = load_script(root / "recipes" / "ftb_offline.py", "recipe_shooting_mw")
     with pytest.raises(ValueError, match="tracker.candidates=0"):
         recipe.tracker_candidates(OmegaConf.merge(cfg, {"tracker": {"candidates": 0}}))
+    table = report_rows(recipe, analysis={"tracked": {**out, "shooting": {**out["shooting"], "lookahead": 5}}})
+    assert ("true return top-k tracked in closed loop (stop rule, 150 steps; shooting, 3 candidates, 5-step "
+            "lookahead): mean / max before -> after") in table

@@ -449,3 +449,33 @@ def test_supplement_readings_bench_tracks_the_top_k_once(tmp_path):
                        "info": {}}, short)
     with pytest.raises(ValueError, match="short.pt: horizon 50 != the dataset's 200"):
         bench.readings("hopper-medium-replay", recorded, short, candidates=8, seed=0)
+
+
+def test_shoot_keeps_the_nearest_try_never_a_nan_and_restores_the_state():
+    """``shoot`` (one shooting step, shared by both trackers): the least distance wins (the first among equals, or
+    within the tolerance), a NaN distance (a simulation gone unstable) is never kept, and every try starts from,
+    and the simulator ends in, the state it was given."""
+    import gymnasium as gym
+    import numpy as np
+
+    from torchrl_ftb.envs.sim_state import save_sim_state, shoot
+
+    u = gym.make("Hopper-v5").unwrapped
+    u.reset(seed=0)
+    before = save_sim_state(u)
+    starts = []
+
+    def rollout(dists):
+        def run(j, a):
+            starts.append(save_sim_state(u).copy())
+            u.do_simulation(a, u.frame_skip)  # moves the simulator: the next try must not start from here
+            return dists[j]
+        return run
+
+    tries = np.zeros((4, 3))
+    assert shoot(u, tries, rollout([3.0, 1.0, 1.0, 2.0])) == 1
+    assert all((s == before).all() for s in starts) and (save_sim_state(u) == before).all()
+    assert shoot(u, tries, rollout([float("nan"), 2.0, float("nan"), 1.0])) == 3
+    assert shoot(u, tries, rollout([float("nan")] * 4)) == 0
+    assert shoot(u, tries, rollout([1.0, 0.95, 0.5, 0.9]), tolerance=0.1) == 2  # 0.95 and 0.9: within 0.1 of 1
+    assert shoot(u, tries, rollout([1.0, 0.95, 0.92, 0.91]), tolerance=0.1) == 0

@@ -53,7 +53,8 @@ from torchrl_ftb.policy.inverse_dynamics import PathTracker
 
 def track_paths(task: str, jobs: list[tuple[int, int]], paths: torch.Tensor, lengths: list[int],
                 tracker: PathTracker, *, seed: int, max_steps: int, on_episode=None,
-                actions: torch.Tensor | None = None, candidates: int = 1, noise: float = 0.3) -> list[dict]:
+                actions: torch.Tensor | None = None, candidates: int = 1, noise: float = 0.3,
+                lookahead: int = 1) -> list[dict]:
     """Closed-loop tracked replays: each dataset episode's goal and start (``jobs``, :func:`episode_jobs`), then
     ``tracker`` heading for its path (``paths [K, H, D]`` observations, ``lengths`` valid steps each) until the
     data's stop rule or ``max_steps``. Returns per-step episodes, as
@@ -64,7 +65,8 @@ def track_paths(task: str, jobs: list[tuple[int, int]], paths: torch.Tensor, len
     the tracker's and ``candidates - 2`` perturbations of it (std ``noise``), keeping the one that lands nearest
     the path's next hand, gripper and object. It reproduces a recorded path exactly; a generated one it follows
     greedily, one step at a time, which is no upper bound of its own actions or of the tracker (a nearer next
-    state can lead off a path the own actions would have finished). Each path's perturbations are seeded by
+    state can lead off a path the own actions would have finished; ``lookahead > 1`` scores each candidate over
+    that many steps, the controller's ``lookahead``). Each path's perturbations are seeded by
     ``seed`` and the path's own numbers, so a path reads the same whatever is tracked with it.
 
     Example:
@@ -83,7 +85,7 @@ def track_paths(task: str, jobs: list[tuple[int, int]], paths: torch.Tensor, len
     if candidates > 1:
         acts = actions.double().cpu().numpy()
         controllers = [MetaWorldShootingController(
-            p, int(n), own_actions=a, proposal=c, candidates=candidates, noise=noise,
+            p, int(n), own_actions=a, proposal=c, candidates=candidates, noise=noise, lookahead=lookahead,
             seed=(int(seed), zlib.crc32(p[:int(n)].tobytes() + a[:int(n)].tobytes())))
             for p, a, n, c in zip(paths, acts, lengths, controllers)]
     return generate_metaworld_episodes(task, jobs, seed=seed, noise=0.0, max_steps=max_steps,
@@ -113,6 +115,7 @@ def tracked_improvement(
     original_rows: torch.Tensor | None = None,
     candidates: int = 1,
     noise: float = 0.3,
+    lookahead: int = 1,
     progress: bool = False,
 ) -> dict:
     """The flow's improvement (original top-k -> final set) with every trajectory's states tracked in closed loop.
@@ -131,6 +134,7 @@ def tracked_improvement(
             among its own action, the tracker's and perturbations. Its off-path bound is then the
             largest hand deviation of the tracker alone on the top-k (tracked again for it; ``fidelity``'s
             ``tracker_alone_*``).
+        lookahead: with shooting, the steps each candidate action is scored over (1: greedy; :func:`track_paths`).
         progress: a progress bar over the episodes.
 
     Returns:
@@ -160,7 +164,8 @@ def tracked_improvement(
     jobs = episode_jobs(meta, torch.cat([rows, start_row]))
     bar = tqdm(total=len(jobs), desc=f"{task} tracked replays", disable=not progress)
     episodes = track_paths(task, jobs, paths, lengths, tracker, seed=int(meta["seed"]), max_steps=int(meta["max_steps"]),
-                           on_episode=lambda: bar.update(1), actions=actions, candidates=candidates, noise=noise)
+                           on_episode=lambda: bar.update(1), actions=actions, candidates=candidates, noise=noise,
+                           lookahead=lookahead)
     bar.close()
     tracked = replay_returns(episodes, horizon=horizon)[:, 1]
     success = torch.tensor([bool(ep["success"].any()) for ep in episodes])
@@ -207,7 +212,8 @@ def tracked_improvement(
                    "claimed_stop_rule_mean": float(claimed1[generated].mean()) if n_gen else None,
                    "tracked_stop_rule_mean": float(tracked[k:].mean()) if n_gen else None,
                    "off_path": int(off_path.sum())}
-    return {"horizon": horizon, "shooting": {"candidates": int(candidates), "noise": float(noise)},
+    return {"horizon": horizon,
+            "shooting": {"candidates": int(candidates), "noise": float(noise), "lookahead": int(lookahead)},
             "tracked": return_summary(tracked[:k], after),
             "tracked_on_path": (return_summary(tracked[:k], after[~off_path]) if bool((~off_path).any())
                                 else {key: float("nan") for key in return_summary(tracked[:k], tracked[:k])}),
@@ -250,10 +256,17 @@ def locomotion_tracked_returns(env_name: str, trajs: TensorDictBase, *, scale: t
         True
     """
     t = locomotion_paths(trajs)
+    return _tracked_returns(env_name, t, scale=observation_scale(t) if scale is None else torch.as_tensor(scale).cpu(),
+                            candidates=candidates, noise=noise, uniform=uniform, lookahead=lookahead, seed=seed)
+
+
+def _tracked_returns(env_name: str, t: TensorDictBase, *, scale: torch.Tensor,
+                     **options) -> tuple[torch.Tensor, list[dict]]:
+    """:func:`locomotion_tracked_returns` of paths already prepared by
+    :func:`~torchrl_ftb.analysis.replay.locomotion_paths` (so the readings that prepare their sets once do not
+    copy and clip them again)."""
     lengths = [int(n) for n in t["mask"].sum(-1).tolist()]
-    eps = track_locomotion_paths(env_name, t["observation"], t["action"], lengths,
-                                 scale=observation_scale(t) if scale is None else torch.as_tensor(scale).cpu(),
-                                 candidates=candidates, noise=noise, uniform=uniform, lookahead=lookahead, seed=seed)
+    eps = track_locomotion_paths(env_name, t["observation"], t["action"], lengths, scale=scale, **options)
     return torch.tensor([float(ep["reward"].sum()) for ep in eps], dtype=torch.float64), eps
 
 
@@ -296,8 +309,8 @@ def track_top_k(env_name: str, original: TensorDictBase, *, candidates: int = 64
     options = _tracker_options(env_name, candidates=candidates, noise=noise, uniform=uniform, lookahead=lookahead,
                                seed=seed)
     t = locomotion_paths(original)
-    returns, episodes = locomotion_tracked_returns(env_name, t, scale=observation_scale(t), candidates=candidates,
-                                                   noise=noise, uniform=uniform, lookahead=lookahead, seed=seed)
+    returns, episodes = _tracked_returns(env_name, t, scale=observation_scale(t), candidates=candidates, noise=noise,
+                                         uniform=uniform, lookahead=lookahead, seed=seed)
     return TrackedTopK(returns, episodes, t["observation"], t["mask"], options)
 
 
@@ -362,7 +375,7 @@ def locomotion_tracked_improvement(final: TensorDictBase, original: TensorDictBa
     tracked, episodes = [], []
     for t, given in tqdm(zip(sets, (original_tracked, None)), total=len(sets),
                          desc=f"{env_name} tracked paths (top-k, final set)", disable=not progress):
-        returns, eps = given[:2] if given is not None else locomotion_tracked_returns(
+        returns, eps = given[:2] if given is not None else _tracked_returns(
             env_name, t, scale=scale, candidates=candidates, noise=noise, uniform=uniform, lookahead=lookahead,
             seed=seed)
         tracked.append(returns)

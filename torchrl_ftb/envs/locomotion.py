@@ -27,7 +27,7 @@ import zlib
 import numpy as np
 import torch
 
-from torchrl_ftb.envs.sim_state import restore_sim_state, save_sim_state
+from torchrl_ftb.envs.sim_state import shoot
 
 __all__ = [
     "LOCOMOTION_ENVS",
@@ -308,32 +308,31 @@ def track_locomotion_paths(env_name: str, paths: torch.Tensor, actions: torch.Te
     _check_dims(u, paths_np[:, 0], acts[:, 0], env_id)
     inv_scale = 1.0 / (np.ones(paths_np.shape[-1]) if scale is None else np.asarray(scale, np.float64))
 
-    def shoot(path: np.ndarray, act: np.ndarray, n: int, rng: np.random.Generator):
+    def controller(path: np.ndarray, act: np.ndarray, n: int, rng: np.random.Generator):
         def choose(t: int) -> np.ndarray:
             action = np.clip(act[t], -1.0, 1.0)
             if t + 1 >= n or candidates == 1:
                 return action
-            saved = save_sim_state(u)  # each candidate starts from the same state, warm start included
             tries = np.concatenate([
                 action[None], rng.uniform(-1.0, 1.0, (num_uniform, action.shape[-1])),
                 np.clip(action + noise * rng.standard_normal((candidates - 1 - num_uniform, action.shape[-1])),
                         -1.0, 1.0)])
-            offsets = tries - action
-            dist = np.zeros(candidates)
-            for j, a in enumerate(tries):
-                restore_sim_state(u, saved)
+
+            def rollout(j: int, a: np.ndarray) -> float:
+                dist = 0.0
                 for k in range(min(lookahead, n - 1 - t)):
-                    u.do_simulation(a if k == 0 else np.clip(act[t + k] + offsets[j], -1.0, 1.0), u.frame_skip)
-                    dist[j] += np.linalg.norm((u._get_obs() - path[t + 1 + k]) * inv_scale)
-            restore_sim_state(u, saved)
-            return tries[int(dist.argmin())]
+                    u.do_simulation(a if k == 0 else np.clip(act[t + k] + a - action, -1.0, 1.0), u.frame_skip)
+                    dist += np.linalg.norm((u._get_obs() - path[t + 1 + k]) * inv_scale)
+                return dist
+
+            return tries[shoot(u, tries, rollout)]
 
         return choose
 
     out = []
     for path, act, n in zip(paths_np, acts, lengths):
         rng = np.random.default_rng((seed, zlib.crc32(path[:n].tobytes() + act[:n].tobytes())))
-        ep = _run_episode(u, path[0], int(n), shoot(path, act, int(n), rng))
+        ep = _run_episode(u, path[0], int(n), controller(path, act, int(n), rng))
         reached = min(len(ep["observation"]), int(n))  # the steps that have a path observation to compare with
         ep["path_error"] = np.linalg.norm((ep["observation"][1:reached] - path[1:reached]) * inv_scale, axis=-1)
         out.append(ep)

@@ -29,7 +29,7 @@ from torchrl.data import Categorical, Composite
 from torchrl.envs import DoubleToFloat, GymWrapper, TransformedEnv
 from torchrl.envs.gym_like import BaseInfoDictReader
 
-from torchrl_ftb.envs.sim_state import restore_sim_state, save_sim_state
+from torchrl_ftb.envs.sim_state import shoot
 
 __all__ = [
     "METAWORLD_MAX_EPISODE_STEPS",
@@ -870,6 +870,11 @@ class MetaWorldShootingController:
     simulator can follow (a recorded one, float32-stored) is reproduced exactly, as the locomotion tracker
     reproduces its recorded paths. Past the path's last step it aims at that last observation.
 
+    With ``lookahead = L > 1`` each candidate is scored over the next ``L`` steps instead, as the locomotion
+    tracker does: after its first action the path's own next actions shifted by the same offset (clipped), the
+    distances to the path's next ``L`` observations summed; only the first action is executed. A greedy choice
+    can land on the next observation from a state that cannot follow the rest of the path.
+
     Hand positions (``obs[0:3]``) and the object's (``obs[4:7]``) are where a Meta-World plan says the
     task happens; the gripper opening (``obs[3]``) is a unitless distance, weighted down by default.
 
@@ -884,7 +889,9 @@ class MetaWorldShootingController:
         candidates: actions tried per step (>= 1; 1: the proposal's, or the own action without one, untried).
         noise: std of the perturbations.
         weights: ``(hand, gripper, object)`` weights of the distance to the path's next observation.
-        tolerance: how much nearer (weighted metres) a later candidate must land to replace an earlier one.
+        tolerance: how much nearer (weighted metres, summed over the lookahead) a later candidate must land to
+            replace an earlier one.
+        lookahead: steps each candidate is scored over (>= 1; 1: greedy).
         seed: the perturbations' generator (``numpy.random.default_rng``'s seed; :func:`~torchrl_ftb.analysis.track_paths`
             seeds each path by its own numbers).
 
@@ -903,11 +910,12 @@ class MetaWorldShootingController:
     def __init__(self, path: np.ndarray, length: int, *, own_actions: np.ndarray,
                  proposal: Callable[[np.ndarray], np.ndarray] | None = None, candidates: int = 4,
                  noise: float = 0.3, weights: tuple[float, float, float] = (1.0, 0.1, 1.0),
-                 tolerance: float = 1e-3, seed: int | tuple[int, ...] = 0) -> None:
+                 tolerance: float = 1e-3, lookahead: int = 1, seed: int | tuple[int, ...] = 0) -> None:
         path, own_actions = np.asarray(path, np.float64), np.asarray(own_actions, np.float64)
-        if candidates < 1 or noise < 0 or tolerance < 0 or len(weights) != 3:
-            raise ValueError(f"MetaWorldShootingController: need candidates >= 1, noise >= 0, tolerance >= 0 and "
-                             f"three weights, got {candidates}, {noise}, {tolerance}, {weights}")
+        if candidates < 1 or noise < 0 or tolerance < 0 or len(weights) != 3 or lookahead < 1:
+            raise ValueError(f"MetaWorldShootingController: need candidates >= 1, noise >= 0, tolerance >= 0, "
+                             f"three weights and lookahead >= 1, got {candidates}, {noise}, {tolerance}, {weights}, "
+                             f"{lookahead}")
         if path.ndim != 2 or own_actions.ndim != 2 or own_actions.shape[0] != path.shape[0] or not 1 <= length <= len(path):
             raise ValueError(f"MetaWorldShootingController: path {list(path.shape)} and own_actions "
                              f"{list(own_actions.shape)} need one row per step and 1 <= length ({length}) <= {len(path)}")
@@ -915,6 +923,7 @@ class MetaWorldShootingController:
         self.own = np.clip(own_actions, -1.0, 1.0)
         self.proposal, self.candidates, self.noise = proposal, int(candidates), float(noise)
         self.weights, self.tolerance = tuple(float(w) for w in weights), float(tolerance)
+        self.lookahead = int(lookahead)
         self.rng = np.random.default_rng(seed)
         self.env, self.step = None, 0
 
@@ -932,7 +941,6 @@ class MetaWorldShootingController:
         if self.env is None:
             raise RuntimeError("MetaWorldShootingController: attach(env) before the first step")
         t, self.step = self.step, self.step + 1
-        target = self.path[min(t + 1, self.length - 1)]
         own = self.own[min(t, self.length - 1)]
         proposed = None if self.proposal is None else np.clip(self.proposal(obs), -1.0, 1.0)
         centre = own if proposed is None else proposed
@@ -944,16 +952,16 @@ class MetaWorldShootingController:
                                 np.clip(centre + self.noise * self.rng.standard_normal((extra, 4)), -1.0, 1.0)])
         import mujoco
 
-        u = self.env
-        saved = save_sim_state(u)
-        best, best_dist = tries[0], np.inf
-        for a in tries:
-            restore_sim_state(u, saved)
-            u.set_xyz_action(a[:3])
-            u.do_simulation([a[-1], -a[-1]], n_frames=u.frame_skip)
-            mujoco.mj_forward(u.model, u.data)
-            dist = self._distance(target)
-            if dist < best_dist - self.tolerance:
-                best, best_dist = a, dist
-        restore_sim_state(u, saved)
-        return best
+        u, last = self.env, self.length - 1
+
+        def rollout(j: int, a: np.ndarray) -> float:
+            dist = 0.0
+            for k in range(max(1, min(self.lookahead, last - t))):
+                b = a if k == 0 else np.clip(self.own[min(t + k, last)] + a - own, -1.0, 1.0)
+                u.set_xyz_action(b[:3])
+                u.do_simulation([b[-1], -b[-1]], n_frames=u.frame_skip)
+                mujoco.mj_forward(u.model, u.data)
+                dist += self._distance(self.path[min(t + 1 + k, last)])
+            return dist
+
+        return tries[shoot(u, tries, rollout, tolerance=self.tolerance)]
