@@ -475,6 +475,33 @@ def test_stop_rule_horizon_fills_with_the_last_reward_unless_terminated(tmp_path
         ScoreModel(3, 2, horizon=0)
 
 
+def test_the_loss_and_training_read_the_termination_flag_the_fill_reads(toy):
+    """With ``horizon`` the Bradley-Terry loss scores each side as :meth:`ScoreModel.score` scores the whole
+    trajectories, termination flag included (a terminated trajectory is not filled): the loss on labels equals the
+    Bradley-Terry NLL of the model's scores, and ``train_score_model`` keeps the flag in what it trains on."""
+    trajs = toy[:4].clone()
+    steps = trajs.batch_size[1]
+    trajs["mask"] = torch.arange(steps).expand(4, steps) < torch.tensor([steps, 5, 3, 9])[:, None]
+    terminated = torch.zeros(4, steps, dtype=torch.bool)
+    terminated[1, 4] = terminated[2, 2] = True  # two trajectories end in a terminal state: no fill
+    trajs["next", "terminated"] = terminated.reshape(trajs["next", "terminated"].shape)
+    model = ScoreModel(3, 2, num_cells=16, gamma=0.9, horizon=40, seed=0)
+    i0, i1 = torch.tensor([0, 1, 2]), torch.tensor([1, 2, 3])
+    labels = TensorDict({"tau0": trajs[i0], "tau1": trajs[i1], "label": torch.tensor([1.0, 0.0, 1.0])}, batch_size=[3])
+    loss_fn = BradleyTerryLoss(model)
+    assert ("tau0", "next", "terminated") in loss_fn.in_keys
+    with torch.no_grad():
+        scores = model.score(trajs)
+        expected = bradley_terry_nll(scores[i0], scores[i1], labels["label"]).mean()
+        torch.testing.assert_close(loss_fn(labels)["loss_preference"], expected)
+        # what training keeps of the labels still carries the flag (it was dropped: scored as never terminated)
+        kept = labels.select(*loss_fn.in_keys, strict=False)
+        torch.testing.assert_close(loss_fn(kept)["loss_preference"], expected)
+        assert float(loss_fn(labels.exclude(("tau0", "next"), ("tau1", "next")))["loss_preference"]) != \
+            pytest.approx(float(expected))
+    train_score_model(model, labels, steps=2, eval_fraction=0.0, seed=0, progress=False)  # runs with the flag
+
+
 def test_stop_rule_horizon_removes_the_length_advantage(toy):
     """With positive per-step rewards a trajectory cut short by a stop rule scores below its full
     version under the plain sum, and the same under the fill when its steps are alike."""

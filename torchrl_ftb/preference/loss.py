@@ -123,7 +123,7 @@ class BradleyTerryLoss(LossModule):
     def _set_in_keys(self) -> None:
         keys = [self.tensor_keys.label]
         for tau in (self.tensor_keys.tau0, self.tensor_keys.tau1):
-            keys += [_prefixed(tau, k) for k in self.score_network._rel_keys]
+            keys += [_prefixed(tau, k) for k in self.score_network.read_keys]
         self._in_keys = keys
 
     def set_keys(self, **kwargs) -> None:
@@ -145,8 +145,9 @@ class BradleyTerryLoss(LossModule):
         net = self.score_network
         if tau0.batch_size != tau1.batch_size:
             return net.score(tau0, members=True), net.score(tau1, members=True)
-        keys = net._rel_keys
-        both = net.score(torch.cat([tau0.select(*keys), tau1.select(*keys)], 0), members=True)
+        keys = net.read_keys  # the termination flag too, where the stop-rule fill reads it
+        both = net.score(torch.cat([tau0.select(*keys, strict=False), tau1.select(*keys, strict=False)], 0),
+                         members=True)
         return both.split(tau0.batch_size[0], dim=-1)
 
     @dispatch

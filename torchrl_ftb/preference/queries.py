@@ -201,7 +201,7 @@ def make_query_labels(
     if num_pairs > n * (n - 1) // 2:
         raise ValueError(f"make_query_labels: asked for {num_pairs} pairs but {n} trajectories have only "
                          f"{n * (n - 1) // 2} distinct pairs")
-    pool = trajs.select("observation", "action", "mask")
+    pool = trajs.select("observation", "action", "mask", ("next", "terminated"), strict=False)  # the fill's flag
     labels = make_scripted_labels(trajs, num_pairs=initial, teacher=teacher, seed=seed).select(*_LABEL_KEYS)
     round_ = 0
     while labels.batch_size[0] < num_pairs:

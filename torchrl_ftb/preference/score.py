@@ -288,6 +288,13 @@ class ScoreModel(TensorDictModuleBase):
         return view
 
     @property
+    def read_keys(self) -> tuple:
+        """The trajectory keys :meth:`score` reads, relative to the prefix: observation, action, mask and, with
+        ``horizon``, ``terminated_key`` (read where present). Select these, not fewer, before scoring a copy: a
+        batch that lost the flag is filled as if never terminated (:meth:`_stop_rule_fill`)."""
+        return self._rel_keys + ((self.terminated_key,) if self.horizon is not None else ())
+
+    @property
     def num_members(self) -> int:
         return self.reward_module.module.num_members
 

@@ -141,9 +141,10 @@ def train_score_model(
     device = torch.device(device) if device is not None else model.gamma.device
     model.to(device)
     loss_fn = BradleyTerryLoss(model)
-    # keep only what the loss reads (drops e.g. the non-tensor "teacher" and unused keys)
-    train = train.select(*loss_fn.in_keys).to(device)
-    held_out = held_out.select(*loss_fn.in_keys).to(device) if held_out is not None else None
+    # keep only what the loss reads (drops e.g. the non-tensor "teacher" and unused keys; the termination flag
+    # the stop-rule fill reads is optional: label files without it are filled as never terminated)
+    train = train.select(*loss_fn.in_keys, strict=False).to(device)
+    held_out = held_out.select(*loss_fn.in_keys, strict=False).to(device) if held_out is not None else None
     optim = torch.optim.Adam(model.parameters(), lr=lr, weight_decay=weight_decay)
 
     m = train.batch_size[0]
