@@ -258,3 +258,56 @@ def test_load_minari_reads_real_values(tmp_path, monkeypatch):
     assert by_id["next", "terminated"][1, 2] and by_id["next", "truncated"][0, 5]
     with pytest.raises(FileNotFoundError):
         load_minari("test/pendulum/absent-v0")
+
+
+@pytest.mark.parametrize("damage", ["truncated", "not_a_zip", "bad_member"])
+def test_a_damaged_npz_is_named_not_a_deep_traceback(tmp_path, damage):
+    """A truncated, non-zip or member-corrupted ``.npz`` gives a ValueError naming the file, from the transition
+    loader and the Preference-Transformer label loader alike (numpy raises BadZipFile / EOFError / zlib.error)."""
+    import zipfile
+
+    from torchrl_ftb.data.labels import load_pt_labels
+
+    good = save_transitions_file(make_toy_dataset(num_trajectories=3, horizon=5, seed=0), tmp_path / "good.npz")
+    raw = good.read_bytes()
+    bad = tmp_path / f"{damage}.npz"
+    if damage == "truncated":
+        bad.write_bytes(raw[: len(raw) // 2])
+    elif damage == "not_a_zip":
+        bad.write_bytes(b"\x93NUMPY not a zip archive at all")
+    else:  # a compressed member whose bytes are garbage
+        with zipfile.ZipFile(bad, "w", compression=zipfile.ZIP_DEFLATED) as z:
+            z.writestr("observations.npy", raw[:200])
+        data = bytearray(bad.read_bytes())
+        data[60:90] = b"\xff" * 30
+        bad.write_bytes(bytes(data))
+    for load in (load_transitions_file, load_pt_labels):
+        with pytest.raises(ValueError, match=rf"{damage}\.npz"):
+            load(bad)
+
+
+def test_load_minari_names_an_episode_whose_arrays_do_not_match_its_steps(tmp_path, monkeypatch):
+    """An episode with T observations (not T + 1) or without steps is refused with its id, not reshaped into
+    another observation size."""
+    minari = pytest.importorskip("minari")
+
+    class Episode:
+        def __init__(self, steps: int, obs_rows: int):
+            self.id, self.steps = 7, steps
+            self.observations = np.zeros((obs_rows, 11), np.float32)
+            self.actions = np.zeros((steps, 3), np.float32)
+            self.rewards = np.zeros(steps)
+            self.terminations = self.truncations = np.zeros(steps, bool)
+            self.infos = {}
+
+        def __len__(self) -> int:
+            return self.steps
+
+    data = tmp_path / "fake" / "data"
+    data.mkdir(parents=True)
+    (data / "metadata.json").write_text("{}")
+    for steps, rows in ((10, 10), (0, 1)):
+        monkeypatch.setattr(minari, "MinariDataset", lambda path, s=steps, r=rows: type(
+            "D", (), {"iterate_episodes": lambda self: iter([Episode(s, r)])})())
+        with pytest.raises(ValueError, match=rf"episode 7 has {rows} observations for {steps} steps"):
+            load_minari(tmp_path / "fake")

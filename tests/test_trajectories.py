@@ -219,3 +219,29 @@ def test_hold_last_step_continues_each_trajectory_with_its_end_state():
         hold_last_step(empty)
     with pytest.raises(ValueError, match=r"names keys the batch does not have: \['force'\]"):
         hold_last_step(data, zero=("action", "force"))
+
+
+def test_atomic_directory_survives_a_concurrent_writer(tmp_path, monkeypatch):
+    """Two writers of one directory (two runs building one cache entry): when the other's version lands between
+    our move of the old one and our swap, it is moved aside in turn and ours lands; no backup is left behind."""
+    import torchrl_ftb.data.trajectories as trajectories
+    from torchrl_ftb.data.trajectories import atomic_directory
+
+    target = tmp_path / "entry"
+    with atomic_directory(target) as tmp:
+        (tmp / "x.txt").write_text("old")
+    real_replace, raced = os.replace, []
+
+    def replace(src, dst):
+        if str(src).endswith(".tmp") and not raced:  # our swap: the other writer's version lands first
+            raced.append(True)
+            os.makedirs(dst, exist_ok=True)
+            with open(os.path.join(dst, "x.txt"), "w") as f:
+                f.write("theirs")
+        return real_replace(src, dst)
+
+    monkeypatch.setattr(trajectories.os, "replace", replace)
+    with atomic_directory(target) as tmp:
+        (tmp / "x.txt").write_text("ours")
+    assert raced and (target / "x.txt").read_text() == "ours"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["entry"]

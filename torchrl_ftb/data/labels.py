@@ -48,6 +48,7 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
 
 from torchrl_ftb.data.trajectories import (
+    NPZ_READ_ERRORS,
     atomic_directory,
     atomic_write_text,
     read_memmap_folder,
@@ -612,8 +613,8 @@ def load_pt_labels(
             if missing:
                 raise ValueError(f"{path}: missing key(s) {missing} (has {sorted(data.files)})")
             arrays = {k: np.asarray(data[k]) for k in _PT_KEYS}
-    except OSError as err:
-        raise ValueError(f"{path}: not a readable npz file ({err})") from err
+    except NPZ_READ_ERRORS as err:
+        raise ValueError(f"{path}: not a readable npz file ({type(err).__name__}: {err})") from err
     for a, b in (("obs_1", "obs_2"), ("action_1", "action_2")):
         if arrays[a].shape != arrays[b].shape:
             raise ValueError(

@@ -64,6 +64,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 
 from torchrl_ftb.data.trajectories import (
+    NPZ_READ_ERRORS,
     atomic_file,
     flat_to_trajectories,
     trajectories_to_flat,
@@ -260,8 +261,8 @@ def _read_fields(path: Path) -> dict:
         try:
             with np.load(path, allow_pickle=False) as data:
                 return {k: data[k] for k in data.files}
-        except (OSError, ValueError) as err:
-            raise ValueError(f"{path}: not a readable npz file ({err})") from err
+        except NPZ_READ_ERRORS as err:
+            raise ValueError(f"{path}: not a readable npz file ({type(err).__name__}: {err})") from err
     if path.suffix in _HDF5_SUFFIXES:
         import h5py
 
@@ -556,6 +557,10 @@ def load_minari(
                 "spaces are supported"
             )
         steps = len(ep)
+        for field, array, rows in (("observations", ep.observations, steps + 1), ("actions", ep.actions, steps)):
+            if steps < 1 or len(array) != rows:
+                raise ValueError(f"{name}: episode {ep.id} has {len(array)} {field} for {steps} steps "
+                                 f"(expected {rows}; an episode needs at least one step)")
         obs = ep.observations.reshape(steps + 1, -1)
         columns["observations"].append(obs[:-1])
         columns["next_observations"].append(obs[1:])

@@ -22,6 +22,8 @@ import json
 import os
 import shutil
 import tempfile
+import zipfile
+import zlib
 from pathlib import Path
 from typing import Any, Iterator, Sequence
 
@@ -31,6 +33,7 @@ from torchrl.collectors.utils import split_trajectories
 
 __all__ = [
     "FORMAT_VERSION",
+    "NPZ_READ_ERRORS",
     "REQUIRED_KEYS",
     "trajectory_lengths",
     "stop_rule_fill",
@@ -478,26 +481,51 @@ def atomic_file(path: str | os.PathLike) -> Iterator[Path]:
         raise
 
 
+_SWAP_ATTEMPTS = 5  # atomic_directory: tries of the final swap when concurrent writers interleave
+
+# what numpy raises on a damaged .npz (a truncated zip, a bad member, a non-zip file), for loaders that name the file
+NPZ_READ_ERRORS = (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error)
+
+
 @contextlib.contextmanager
 def atomic_directory(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temp directory beside ``path`` that is swapped in for ``path`` only on success.
 
     An interrupted write leaves ``path`` as it was (absent or the previous version) and
-    removes the temp directory; an existing ``path`` is replaced.
+    removes the temp directory; an existing ``path`` is replaced (moved to a uniquely named
+    backup beside it, then removed). Two processes writing the same ``path`` at once (e.g. two
+    runs building one dataset cache entry) both succeed, the last one's version kept: a
+    version that appears between the move and the swap is moved aside in turn.
+
+    Example:
+        >>> import tempfile
+        >>> target = Path(tempfile.mkdtemp()) / "entry"
+        >>> for text in ("first", "second"):
+        ...     with atomic_directory(target) as tmp:
+        ...         _ = (tmp / "x.txt").write_text(text)
+        >>> (target / "x.txt").read_text(), sorted(p.name for p in target.parent.iterdir())
+        ('second', ['entry'])
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp"))
     try:
         yield tmp
-        if path.exists():
-            old = path.with_name(f".{path.name}.old")
-            shutil.rmtree(old, ignore_errors=True)
-            os.replace(path, old)
-            os.replace(tmp, path)
-            shutil.rmtree(old)
-        else:
-            os.replace(tmp, path)
+        for attempt in range(_SWAP_ATTEMPTS):
+            old = None
+            if path.exists():
+                old = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".old"))
+                with contextlib.suppress(FileNotFoundError):  # another writer moved it away first
+                    os.replace(path, old)
+            try:
+                os.replace(tmp, path)
+                break
+            except OSError:  # another writer's version landed in between: move that one aside too
+                if attempt == _SWAP_ATTEMPTS - 1:
+                    raise
+            finally:
+                if old is not None:
+                    shutil.rmtree(old, ignore_errors=True)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
