@@ -60,7 +60,7 @@ from torchrl_ftb.analysis import (
     tracked_improvement,
 )
 from torchrl_ftb.data import atomic_torch_save, atomic_write_text, read_checkpoint, trajectories_to_flat
-from torchrl_ftb.data.labels import SuccessTeacher, load_labels, make_teacher, save_labels
+from torchrl_ftb.data.labels import SuccessTeacher, check_labels_match, load_labels, make_teacher, save_labels
 from torchrl_ftb.datasets import dataset_kwargs, make_dataset
 from torchrl_ftb.diffusion import DiffusionSampler, load_diffuser, make_diffuser, run_settings, train_diffuser
 from torchrl_ftb.diffusion.train import CHECKPOINT_NAME
@@ -211,6 +211,7 @@ class RunDir:
             old = OmegaConf.to_container(OmegaConf.load(self.config_file), resolve=True)
             # the config sections of redone stages may change (that is what redo_from is for)
             free = set(RESUME_FREE_KEYS) | (set(STAGES[STAGES.index(redo):]) if redo is not None else set())
+            self._check_relabelling_tracker(cfg, old, free)
             owned = [key for stage in free for key in STAGE_OWNED_KEYS.get(stage, ())]
             extension = None if "diffuser" in free else self._diffuser_extension(cfg, old)
             if extension is not None:
@@ -229,6 +230,19 @@ class RunDir:
         self.path.mkdir(parents=True, exist_ok=True)
         self.ckpt.mkdir(parents=True, exist_ok=True)
         atomic_write_text(self.config_file, OmegaConf.to_yaml(cfg, resolve=True))
+
+    def _check_relabelling_tracker(self, cfg: DictConfig, old: dict, free: set) -> None:
+        """``tracker`` is free on resume (it serves the analysis), except while BC is half-trained on actions the
+        tracker relabelled (``bc.relabel_actions``): a changed ``tracker.steps`` would refit it and BC would go on
+        from its checkpoint on other actions. Raise instead, before anything is removed."""
+        bc_half_done = (self.ckpt / "bc.pt").is_file() and not self.done("bc") and "bc" not in free
+        if not bc_half_done or not bool((old.get("bc") or {}).get("relabel_actions", False)):
+            return
+        before, now = (old.get("tracker") or {}).get("steps", 4000), tracker_steps(cfg)
+        if before != now:
+            raise ValueError(f"tracker.steps={now}: {self.ckpt / 'bc.pt'} is half-trained on actions relabelled by a "
+                             f"tracker of {before} steps (bc.relabel_actions); keep tracker.steps={before} or pass "
+                             f"redo_from=bc")
 
     def _diffuser_extension(self, cfg: DictConfig, old: dict) -> str | None:
         """Whether ``resume=true`` asks for more diffuser training than the run's config did (a message saying so;
@@ -255,13 +269,15 @@ class RunDir:
 
     def _forget(self, first: str, *, keep: tuple[str, ...] = ()) -> None:
         """Mark stage ``first`` and every later one undone and remove their checkpoints (not those of ``keep``)."""
-        for name in STAGES[STAGES.index(first):]:
+        later = STAGES[STAGES.index(first):]
+        for name in later:
             self.stages.pop(name, None)
+        if self.stages_file.exists():  # first: a kill while deleting must not leave a stage done without its files
+            write_json(self.stages_file, self.stages)
+        for name in later:
             for item in () if name in keep else STAGE_CHECKPOINTS.get(name, ()):
                 target = self.ckpt / item
                 shutil.rmtree(target) if target.is_dir() else target.unlink(missing_ok=True)
-        if self.stages_file.exists():
-            write_json(self.stages_file, self.stages)
 
     def done(self, stage: str) -> bool:
         return bool(self.stages.get(stage, {}).get("done"))
@@ -979,8 +995,12 @@ def run(cfg: DictConfig) -> dict:
     try:  # the flow's numbers fail now, not after the diffuser's training
         check_flow_options(**flow_options(cfg), num_members=1 if flow_filter(cfg) == "true_return"
                            else int(cfg.score_model.get("num_members", 1)))
-    except ValueError as err:
+    except (ValueError, TypeError) as err:  # TypeError: e.g. flow.top_k=null
         raise ValueError(f"flow.* (or blocks.num_blocks): {err}") from None
+    for key in ("flow.true_return_horizon", "flow.true_return_streak"):  # read by the flow stage only
+        value = OmegaConf.select(cfg, key)
+        if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
+            raise ValueError(f"{key}={value!r}: must be a whole number >= 1, or null")
     check_policy_options(cfg)
     inpaint_start(cfg)
     tracker_steps(cfg)
@@ -1039,8 +1059,13 @@ def run(cfg: DictConfig) -> dict:
     if not run_dir.done("dataset"):
         run_dir.mark("dataset", num_trajectories=int(trajs.batch_size[0]), horizon=int(trajs.batch_size[1]),
                      obs_dim=obs_dim, action_dim=act_dim, path=meta.get("path"))
-    elif run_dir.stages["dataset"].get("num_trajectories") != int(trajs.batch_size[0]):
-        raise ValueError(f"{run_dir.stages_file}: the dataset changed since the run started")
+    else:  # the run's dataset: the same size and, where recorded, the same cache entry (its key names the data)
+        recorded = run_dir.stages["dataset"]
+        if recorded.get("num_trajectories") != int(trajs.batch_size[0]) or \
+                recorded.get("path") not in (None, meta.get("path")):
+            raise ValueError(f"{run_dir.stages_file}: the dataset changed since the run started "
+                             f"({recorded.get('num_trajectories')} trajectories at {recorded.get('path')}, now "
+                             f"{int(trajs.batch_size[0])} at {meta.get('path')}); start a new run_dir")
     if int(cfg.flow.top_k) > trajs.batch_size[0]:  # fails now, not at the flow stage
         raise ValueError(f"flow.top_k={cfg.flow.top_k} exceeds the dataset's {trajs.batch_size[0]} trajectories")
     timed("dataset", t0)
@@ -1054,6 +1079,7 @@ def run(cfg: DictConfig) -> dict:
     label_dir = run_dir.ckpt / "labels"
     if run_dir.done("labels"):
         labels, _ = load_labels(label_dir)
+        check_labels_match(labels, trajs, name=str(label_dir))  # the labelled trajectories are this dataset's
     else:
         sm_cfg = cfg.score_model
         labels = make_query_labels(

@@ -123,6 +123,62 @@ def test_flow_with_stand_in_sampler_improves_and_pools():
     assert set(rb.sample().keys()) == {"observation", "action"}
 
 
+def test_samples_are_scored_as_they_are_kept_with_actions_clipped():
+    """A sample whose actions overshoot the limit (within the tolerance) is kept with them clipped; it is scored,
+    accepted and ranked by that clipped trajectory, not by the overshoot the score model would reward."""
+    data = make_toy_dataset(num_trajectories=40, horizon=H, seed=1)
+
+    def overshoot(cond):
+        out = cond.select("observation", "action", "mask").clone()
+        out["action"] = torch.where(out["mask"][..., None], out["action"] + 0.45, out["action"])  # up to 1.45
+        return out
+
+    flow = FlowToBetter(TensorDictModule(overshoot, ["condition"], ["sample"]), _sum_ax, top_k=8, threshold=1.0,
+                        flow_steps=2, progress=False, early_stop_fraction=0.0)
+    res = flow(data)
+    assert res.generated.batch_size[0] > 0 and bool((res.trajectories["action"].abs() <= 1.0).all())
+    torch.testing.assert_close(res.scores, _sum_ax(res.trajectories).double())
+
+
+def test_keep_reward_flows_range_check_the_generated_reward():
+    """With ``keep_reward`` (augmentation) the validity check's normaliser covers the reward channel: a sample that
+    improves the score but carries a reward far outside the data's is invalid (it was never range-checked)."""
+    data = make_toy_dataset(num_trajectories=30, horizon=H, seed=2)
+
+    def with_reward(big: bool):
+        def better(cond):
+            out = cond.select("observation", "action", "mask", ("next", "reward")).clone()
+            out["action"][..., 0] = (out["action"][..., 0] + 0.3).clamp(-1, 1) * out["mask"]
+            if big:
+                out["next", "reward"] = out["next", "reward"] + 1e3
+            return out
+        return TensorDictModule(better, ["condition"], ["sample"])
+
+    accepted = {big: FlowToBetter(with_reward(big), _sum_ax, top_k=6, threshold=1.0, flow_steps=1, progress=False,
+                                  keep_reward=True)(data).generated.batch_size[0] for big in (False, True)}
+    assert accepted[False] > 0 and accepted[True] == 0
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_flow_with_a_cuda_sampler_on_data_without_a_device():
+    """The toy data's TensorDict has no device; a sampler on CUDA: the samples come back to the data's tensors'
+    device (they stayed on CUDA and the flow mixed devices)."""
+    data = make_toy_dataset(num_trajectories=20, horizon=H, seed=1)
+    assert data.device is None
+    sampler = _shift_sampler(0.2)
+
+    class OnCuda(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.anchor = torch.nn.Parameter(torch.zeros(1, device="cuda"))
+
+        def forward(self, td):
+            return sampler(td.to("cuda"))
+
+    res = FlowToBetter(OnCuda(), _sum_ax, top_k=4, threshold=1.0, flow_steps=1, progress=False)(data)
+    assert res.trajectories["action"].device.type == "cpu" and res.generated.batch_size[0] > 0
+
+
 def _lottery_sampler():
     """A stand-in sampler drawing, per sample and uniformly, one of: better but invalid (y-action 3),
     worse, or better (x-actions +0.2)."""
@@ -171,6 +227,10 @@ def test_flow_rejects_invalid_samples_and_stops_early():
         assert torch.equal(res.scores, res.original_scores)
     with pytest.raises(ValueError, match="top_k"):
         FlowToBetter(_shift_sampler(), _sum_ax, top_k=31, flow_steps=1, progress=False)(data)
+    nan_scores = _sum_ax(data).double()
+    nan_scores[[3, 7]] = float("nan")
+    with pytest.raises(ValueError, match=r"2 dataset scores are NaN or infinite \(trajectories \[3, 7\]\)"):
+        FlowToBetter(_shift_sampler(), _sum_ax, top_k=5, flow_steps=1, progress=False)(data, scores=nan_scores)
     with pytest.raises(ValueError, match="num_blocks"):
         FlowToBetter(_shift_sampler(), _sum_ax, top_k=3)
 

@@ -172,6 +172,9 @@ def test_make_medium_expert_dataset_groups_and_cache(tmp_path):
     validate_trajectories(td, obs_dim=11, action_dim=3)
     group = meta["per_trajectory"]["group"]
     assert meta["groups"] == ["medium", "expert"] and set(group.tolist()) == {0, 1}
+    import importlib.metadata  # the simulator's build is part of the cache key: another build, another dataset
+
+    assert meta["mujoco_version"] == importlib.metadata.version("mujoco") and "gymnasium_version" in meta
     ret = (td["next", "reward"].squeeze(-1) * td["mask"]).sum(-1)
     # the expert half is better than the medium half (what makes medium-expert useful)
     assert float(ret[group == 1].mean()) > float(ret[group == 0].mean())

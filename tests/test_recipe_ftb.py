@@ -224,6 +224,9 @@ def test_bad_config_is_a_clear_error(tmp_path):
                               ("flow.threshold=0.9", "threshold σ must be >= 1"),
                               ("flow.early_stop_fraction=1.5", r"early_stop_fraction must be in \[0, 1\]"),
                               ("flow.candidates=0", "candidates must be >= 1"),
+                              ("flow.top_k=null", r"flow.\* \(or blocks.num_blocks\): int\(\) argument"),
+                              ("flow.true_return_horizon=0", "flow.true_return_horizon=0: must be a whole number >= 1"),
+                              ("flow.true_return_streak=ten", "flow.true_return_streak='ten': must be a whole number"),
                               ("flow.ensemble_rule=all", "needs a ScoreModel ensemble"),
                               ("bc.batch_size=0", r"bc.\*: train_bc: batch_size must be >= 1, got 0"),
                               ("bc.lr=0", "train_bc: lr must be > 0"),
@@ -547,3 +550,56 @@ def test_options_added_later_resume_old_run_directories_at_their_no_op_defaults(
     old_s31, new_s32 = {"bc": {"steps": 5, "tracker_steps": 4000}}, {"bc": {"steps": 5}}
     assert recipe._diff_keys(new_s32, old_s31) == []
     assert recipe._diff_keys({"bc": {}}, old_s31) == ["bc.steps: 5 -> '<missing>'"]
+
+
+def test_resume_refuses_another_tracker_under_a_half_trained_relabelled_bc(tmp_path):
+    """``tracker`` may change on resume (it serves the analysis), but not while BC is half-trained on actions the
+    tracker relabelled: the refitted tracker would hand BC other actions from its checkpoint on. Nothing is
+    removed when refused; a finished BC, ``redo_from=bc`` or relabelling off lets it change."""
+    import json
+
+    from omegaconf import OmegaConf
+
+    recipe = _recipe()
+    run_dir = tmp_path / "run"
+    (run_dir / "checkpoints").mkdir(parents=True)
+    first = _cfg(run_dir, "bc.relabel_actions=true", "tracker.steps=50")
+    (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(first, resolve=True))
+    stages = {stage: {"done": True} for stage in ("dataset", "labels", "score_model", "blocks", "diffuser", "flow")}
+    (run_dir / "stages.json").write_text(json.dumps(stages))
+    (run_dir / "checkpoints" / "bc.pt").write_bytes(b"half-trained")
+    with pytest.raises(ValueError, match="tracker.steps=60: .*bc.pt is half-trained on actions relabelled by a "
+                                         "tracker of 50 steps"):
+        recipe.RunDir(_cfg(run_dir, "bc.relabel_actions=true", "tracker.steps=60", "resume=true"))
+    assert (run_dir / "checkpoints" / "bc.pt").is_file()
+    recipe.RunDir(_cfg(run_dir, "bc.relabel_actions=true", "tracker.steps=50", "resume=true"))  # same tracker
+    (run_dir / "stages.json").write_text(json.dumps({**stages, "bc": {"done": True}}))
+    recipe.RunDir(_cfg(run_dir, "bc.relabel_actions=true", "tracker.steps=60", "resume=true"))  # BC finished
+    (run_dir / "stages.json").write_text(json.dumps(stages))
+    recipe.RunDir(_cfg(run_dir, "bc.relabel_actions=true", "tracker.steps=60", "resume=true", "redo_from=bc"))
+    assert not (run_dir / "checkpoints" / "bc.pt").exists()  # redone: BC starts afresh on the new tracker's actions
+
+
+def test_resume_checks_that_the_labels_and_the_dataset_are_still_the_run_s(tmp_path):
+    """On resume the saved labels must still be segments of the run's dataset (``check_labels_match``) and the
+    dataset the one recorded at the start: a mismatch is refused with the folder named, not trained on."""
+    import json
+
+    from torchrl_ftb.data.labels import load_labels, save_labels
+
+    recipe = _recipe()
+    run_dir = tmp_path / "run"
+    recipe.run(_cfg(run_dir, "stop_after=labels"))
+    label_dir = run_dir / "checkpoints" / "labels"
+    labels, meta = load_labels(label_dir)
+    swapped = labels.clone()
+    swapped["index0"] = (labels["index0"] + 1) % 48  # the labels now name other trajectories than their segments
+    save_labels(swapped, label_dir, meta=meta)
+    with pytest.raises(ValueError, match=rf"{label_dir}"):
+        recipe.run(_cfg(run_dir, "resume=true", "stop_after=labels"))
+    save_labels(labels, label_dir, meta=meta)
+    stages = json.loads((run_dir / "stages.json").read_text())
+    stages["dataset"]["path"] = "/elsewhere/another-cache-entry"
+    (run_dir / "stages.json").write_text(json.dumps(stages))
+    with pytest.raises(ValueError, match="the dataset changed since the run started .*another-cache-entry"):
+        recipe.run(_cfg(run_dir, "resume=true", "stop_after=labels"))

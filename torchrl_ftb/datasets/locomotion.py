@@ -744,6 +744,7 @@ def return_stats(td: TensorDictBase, *, env: str | None = None) -> dict:
 def _dataset_config(env: str, kind: str, num_transitions: int | None, seed: int, deterministic: bool,
                     policy_dir: Path) -> dict:
     import hashlib
+    import importlib.metadata
 
     files = {"medium": ["medium"], "medium-expert": ["medium", "expert"], "medium-replay": ["medium_replay"]}[kind]
     digests = {f: hashlib.sha1((policy_dir / f"{env}_{f}.pt").read_bytes()).hexdigest()[:12]
@@ -753,6 +754,9 @@ def _dataset_config(env: str, kind: str, num_transitions: int | None, seed: int,
         "num_transitions": None if kind == "medium-replay" else int(num_transitions),
         "seed": int(seed), "deterministic": bool(deterministic), "policy_files": digests,
         "generator": "torchrl_ftb.datasets.locomotion", "generator_version": 1,
+        # the rollouts are the simulator's: another MuJoCo or gymnasium build is another dataset (as Meta-World's key)
+        "mujoco_version": importlib.metadata.version("mujoco"),
+        "gymnasium_version": importlib.metadata.version("gymnasium"),
     }
 
 

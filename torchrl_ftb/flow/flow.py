@@ -559,6 +559,9 @@ class FlowToBetter(nn.Module):
         n = conditions.batch_size[0]
         params = list(self.sampler.parameters()) if isinstance(self.sampler, nn.Module) else []
         device = params[0].device if params else conditions.device
+        # where the samples go back to: the conditions' device (a TensorDict without one, e.g. the toy data: its
+        # tensors'), so a sampler on another device never mixes devices in the flow
+        home = conditions.device if conditions.device is not None else conditions.get("mask").device
         chunks = []
         for i in range(0, n, self.batch_size):
             cond = conditions[i : i + self.batch_size].to(device)
@@ -576,7 +579,7 @@ class FlowToBetter(nn.Module):
                 raise ValueError("FlowToBetter(keep_reward=True): the sampler's 'sample' has no ('next', 'reward'); "
                                  "use a diffuser with reward_channel=True")
             extra = [REWARD_KEY] if REWARD_KEY in sample.keys(True) else []
-            chunks.append(sample.select(*TRAJ_KEYS, *extra).to(conditions.device))
+            chunks.append(sample.select(*TRAJ_KEYS, *extra).to(home))
         out = torch.cat(chunks, 0)
         out.set("mask", out.get("mask").bool())
         return out
@@ -587,17 +590,22 @@ class FlowToBetter(nn.Module):
         """One flow step's proposals for ``conditions`` ``[N, H]``: draws ``candidates`` samples per
         condition and keeps, per condition, the valid one with the highest (mean) score.
 
+        The action limit is checked on the raw samples (:func:`trajectory_validity`'s tolerance); the rest, the
+        domain check and the score, read the samples with actions clipped (:func:`clip_actions`), which is what
+        an accepted sample is kept as.
+
         Returns:
             ``(samples [N, H], scores [N], filter scores [C, N], valid [N], domain_valid [N] | None,
             extra statistics)``; a condition with no valid candidate gets an invalid one.
         """
         n = conditions.batch_size[0]
         samples = self.generate(conditions if self.candidates == 1 else torch.cat([conditions] * self.candidates, 0))
-        scores, members = self._scores(samples)
         valid = trajectory_validity(
             samples, normalizer=normalizer, max_abs_z=self.max_abs_z, min_length=min_length,
             action_limit=self.action_limit, action_tolerance=self.action_tolerance,
         )["valid"].cpu()
+        samples = clip_actions(samples, self.action_limit)
+        scores, members = self._scores(samples)
         domain_valid = None
         if self.validity_fn is not None:
             domain_valid = torch.as_tensor(self.validity_fn(samples)).bool().cpu()
@@ -615,8 +623,9 @@ class FlowToBetter(nn.Module):
 
     def _resolve_normalizer(self, data: TensorDictBase):
         norm = self.normalizer if self.normalizer is not None else getattr(self.sampler, "normalizer", None)
-        if norm is None:
-            x = torch.cat([data.get("observation"), data.get("action")], -1)
+        if norm is None:  # with keep_reward the generated reward is range-checked too (validity's +1 dimension)
+            parts = [data.get("observation"), data.get("action")] + ([data.get(REWARD_KEY)] if self.keep_reward else [])
+            x = torch.cat(parts, -1)
             norm = TrajectoryNormalizer(x.shape[-1]).fit(x, data.get("mask"))
         return norm
 
@@ -672,6 +681,10 @@ class FlowToBetter(nn.Module):
             if scores.shape != (n,):
                 raise ValueError(f"FlowToBetter: scores have shape {list(scores.shape)}, expected [{n}]")
         scores, member_scores = self._scores(data, scores)  # [N] and [C, N]: what the rule compares
+        if not bool(torch.isfinite(member_scores).all()):
+            bad = (~torch.isfinite(member_scores)).any(0).nonzero().flatten().tolist()
+            raise ValueError(f"FlowToBetter: {len(bad)} dataset scores are NaN or infinite (trajectories "
+                             f"{bad[:10]}); check the score model or the scores passed")
         if block_ids is None and self.flow_steps is None:
             block_ids = make_blocks(scores, self.num_blocks, seed=self.seed)
         s_min, s_max = float(scores.min()), float(scores.max())
@@ -697,7 +710,8 @@ class FlowToBetter(nn.Module):
         cur_true = None if true0 is None else true0.clone()
         pool_true: list[torch.Tensor] = []
         bar = tqdm(range(1, steps + 1), desc="flow", disable=not self.progress)
-        with torch.random.fork_rng(devices=[]):
+        # the flow's own seed for every device's generator (a sampler on CUDA draws there), restored after
+        with torch.random.fork_rng(devices=list(range(torch.cuda.device_count()))):
             torch.manual_seed(self.seed)
             for step in bar:
                 # the conditions' normalised scores go along for samplers that read them (score_condition)
@@ -709,7 +723,7 @@ class FlowToBetter(nn.Module):
                 accept = valid & better & torch.isfinite(new_scores)
                 true_gain = None
                 if bool(accept.any()):
-                    accepted = clip_actions(samples[accept].select(*self.keys).clone(), self.action_limit)
+                    accepted = samples[accept].select(*self.keys).clone()  # actions clipped by propose
                     if self.keep_reward:  # padding carries no reward
                         accepted.set(REWARD_KEY, accepted.get(REWARD_KEY) * accepted.get("mask")[..., None])
                     current[accept] = accepted
