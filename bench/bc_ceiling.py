@@ -96,7 +96,8 @@ def run_cell(task: str, idx: torch.Tensor, seed: int, cfg, data: tuple, *, episo
     eval_env = functools.partial(make_env, task, seed=int(cfg.eval.seed), max_episode_steps=int(cfg.env.max_episode_steps))
     t0 = time.perf_counter()
     ev = evaluate_policy(eval_env, actor, num_episodes=episodes, seed=int(cfg.eval.seed),
-                         max_steps=int(cfg.eval.max_steps), stop_on_success=True)
+                         max_steps=None if cfg.eval.max_steps is None else int(cfg.eval.max_steps),
+                         stop_on_success=True)
     counts = torch.bincount(group[idx], minlength=len(meta["groups"])).tolist()
     succ = [int(success[idx][group[idx] == i].sum()) for i in range(len(meta["groups"]))]
     return {
@@ -143,7 +144,7 @@ def main() -> None:
             parser.error(f"--dataset-overrides {args.dataset_overrides}: {err}")
     steps = args.steps if args.steps is not None else int(cfg.presets.cpu.bc_steps)
     config = {**vars(args), "out": str(args.out), "steps": steps,
-              "bc": OmegaConf.to_container(cfg.bc), "eval": {"seed": int(cfg.eval.seed), "max_steps": int(cfg.eval.max_steps)}}
+              "bc": OmegaConf.to_container(cfg.bc), "eval": {"seed": int(cfg.eval.seed), "max_steps": cfg.eval.max_steps}}
     del config["bc"]["steps"], config["bc"]["checkpoint_every"]  # preset interpolations; steps above
     record = {**run_record(config=config), "cells": {}}
     if args.out.is_file():  # resume: keep finished cells of the same command

@@ -688,3 +688,33 @@ def test_parse_overrides_reads_yaml_values_and_rejects_bare_keys():
         parse_overrides(["score_condition"])
     with pytest.raises(ValueError, match="KEY=VALUE"):
         parse_overrides(["=1"])
+
+
+def test_a_checkpoint_rebuilds_the_model_it_was_trained_as_after_a_preset_is_retuned(data, tmp_path, monkeypatch):
+    """``diffuser.config`` holds the resolved model section: a saved diffuser loads with the prediction type,
+    schedule and clip margin it was trained with, even after the preset changed them (it loaded the new values
+    without error), and samples exactly as before."""
+    import torchrl_ftb.diffusion.presets as presets
+
+    d = _diffuser(data)
+    path = save_diffuser(d, tmp_path / "d.pt")
+    retuned = {**presets.PRESETS["tiny"], "model": {**presets.PRESETS["tiny"]["model"],
+                                                    "prediction_type": "v_prediction", "clip_margin": None,
+                                                    "beta_schedule": "linear"}}
+    monkeypatch.setitem(presets.PRESETS, "tiny", retuned)
+    back = load_diffuser(path)
+    assert back.process.prediction_type == d.process.prediction_type != "v_prediction"
+    assert back.clip_margin == d.clip_margin is not None
+    g = dict(sampler="ddim", steps=2, generator=None)
+    torch.manual_seed(1)
+    a = d.generate(data[:2], **g)
+    torch.manual_seed(1)
+    b = back.generate(data[:2], **g)
+    assert torch.equal(a["observation"], b["observation"])
+
+
+def test_an_unfitted_unconditional_diffuser_refuses_to_sample():
+    """Its bounds are infinite before ``fit_normalizer``: sampling raised nothing and decoded NaN."""
+    d = make_diffuser("tiny", obs_dim=3, action_dim=2, horizon=H, unconditional=True)
+    with pytest.raises(ValueError, match="the normalizer is not fitted"):
+        d.generate(num_samples=2, sampler="ddim", steps=2)

@@ -101,6 +101,26 @@ def test_metaworld_env_specs_goal_modes_and_time_limit():
     assert not torch.allclose(obs[0], obs[1]) and not torch.allclose(obs[1], obs[2])
 
 
+def test_parallel_metaworld_envs_draw_different_goals_and_a_reseed_repeats_them():
+    """``set_seed`` seeds the goal draws: the sub-envs of a ``SerialEnv`` (seeded one after another) start from
+    different placements (they all drew the same ones, so num_envs=k evaluated num_episodes/k distinct
+    episodes), and an env seeded again with its own seed draws what it drew before."""
+    from torchrl.envs import SerialEnv
+
+    make = functools.partial(make_metaworld_env, "button-press-v3", seed=1000, max_episode_steps=5, random_goal=True)
+    serial = SerialEnv(2, make)
+    serial.set_seed(1000)
+    first = serial.reset()["observation"][:, 4:7]
+    assert not torch.allclose(first[0], first[1])
+    env = make()
+    placements = []
+    for _ in range(2):
+        env.set_seed(1000)
+        placements.append(torch.stack([env.reset()["observation"][4:7] for _ in range(3)]))
+    assert torch.equal(placements[0], placements[1]) and not torch.allclose(placements[0][0], placements[0][1])
+    serial.close()
+
+
 @pytest.mark.integration
 @pytest.mark.parametrize("policy_task", ["door-open-v3", "door-close-v3"])
 def test_scripted_policies_leave_the_observation_alone(policy_task):

@@ -156,3 +156,12 @@ def test_evaluate_refuses_bad_numbers_before_building_an_env(name):
 
     with pytest.raises(ValueError, match=f"evaluate_policy: {name} must be >= 1, got 0"):
         evaluate_policy(no_env, make_bc_actor(3, 2, hidden=(4,)), **{name: 0})
+
+
+def test_evaluate_without_max_steps_runs_each_episode_to_the_env_s_own_end():
+    """``max_steps=None`` (the recipes' default ``eval.max_steps: null``): every episode runs until the env ends it,
+    so a locomotion episode is not cut at a Meta-World 500; a number still caps it."""
+    actor = make_bc_actor(ToyLineEnv().observation_spec["observation"].shape[-1], 2, hidden=(4,))
+    own = evaluate_policy(lambda: ToyLineEnv(max_steps=37), actor, num_episodes=2, seed=0, max_steps=None)
+    capped = evaluate_policy(lambda: ToyLineEnv(max_steps=37), actor, num_episodes=2, seed=0, max_steps=10)
+    assert own["length_mean"] == 37 and capped["length_mean"] == 10

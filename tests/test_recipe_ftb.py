@@ -232,6 +232,7 @@ def test_bad_config_is_a_clear_error(tmp_path):
                               ("bc.lr=0", "train_bc: lr must be > 0"),
                               ("bc.steps=many", "bc.steps='many': must be a number"),
                               ("eval.num_episodes=0", r"eval.\*: evaluate_policy: num_episodes must be >= 1"),
+                              ("eval.max_steps=0", r"eval.\*: evaluate_policy: max_steps must be >= 1"),
                               ("diffuser.pair_neighbours=0", "diffuser.pair_neighbours=0: must be null or an integer"),
                               ("diffuser.top_block_pairs=1", "diffuser.top_block_pairs=1: must be true or false")):
         with pytest.raises(ValueError, match=message):

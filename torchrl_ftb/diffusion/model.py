@@ -465,6 +465,7 @@ class TrajectoryDiffuser(nn.Module):
             Trajectory batch ``[B, H]`` with ``observation``, ``action``, ``mask`` (from the
             validity channel) and ``("next", "reward")`` if modelled.
         """
+        self._check_fitted()  # unfitted bounds are +-inf: the unconditional path would decode NaN
         nets = self.sampling_networks(use_ema)
         was_training = nets.training
         nets.eval()

@@ -301,5 +301,8 @@ def make_diffuser(
                        "global_condition": bool(cfg["global_condition"]),
                        "concat_condition": bool(cfg["concat_condition"]),
                        "score_condition": bool(cfg["score_condition"]),
-                       "encoder_skip": bool(cfg["encoder_skip"]), **overrides}
+                       "encoder_skip": bool(cfg["encoder_skip"]),
+                       # the whole resolved model section, not only the overrides: a checkpoint rebuilds the model
+                       # it was trained as even if the preset is retuned later (schedule, prediction type, ...)
+                       **{k: list(v) if isinstance(v, tuple) else v for k, v in cfg.items()}}
     return diffuser

@@ -205,6 +205,22 @@ class SuccessInfoReader(BaseInfoDictReader):
         return self._spec
 
 
+class _MetaWorldGymWrapper(GymWrapper):
+    """``GymWrapper`` whose ``set_seed`` also seeds the goal draws (:func:`configure_goal`): Meta-World's
+    ``reset(seed=)`` leaves them alone, so the sub-envs of a ``SerialEnv`` (seeded one after another by torchrl)
+    would all draw the same goals. The goals are seeded before the reset ``set_seed`` runs, so an env
+    seeded again with the seed it was built with draws what it drew before."""
+
+    def __init__(self, env, *, random_goal: bool, **kwargs) -> None:
+        self._random_goal = bool(random_goal)
+        super().__init__(env, **kwargs)
+
+    def _set_seed(self, seed: int | None) -> None:
+        if seed is not None:
+            configure_goal(self._env, random_goal=self._random_goal, seed=int(seed))
+        super()._set_seed(seed)
+
+
 def make_metaworld_env(
     task: str,
     *,
@@ -217,7 +233,8 @@ def make_metaworld_env(
 
     Args:
         task: a v3 task name, e.g. ``"button-press-v3"`` (see :func:`metaworld_tasks`).
-        seed: seeds the goal list, the env and (if ``random_goal``) the goal draws.
+        seed: seeds the goal list, the env and (if ``random_goal``) the goal draws; ``env.set_seed(s)``
+            seeds the goal draws again (so the sub-envs of a ``SerialEnv`` draw different goals).
         max_episode_steps: time limit (truncation); Meta-World's default is 500.
         device: torch device of the env's outputs.
         random_goal: draw a new goal at every reset (else a fixed goal, see
@@ -236,7 +253,7 @@ def make_metaworld_env(
     """
     gym_env = make_metaworld_gym_env(task, seed=seed, max_episode_steps=max_episode_steps,
                                      random_goal=random_goal)
-    base = GymWrapper(gym_env, device=device)
+    base = _MetaWorldGymWrapper(gym_env, random_goal=random_goal, device=device)
     base.set_info_dict_reader(SuccessInfoReader())
     env = TransformedEnv(base, DoubleToFloat())
     env.set_seed(int(seed))

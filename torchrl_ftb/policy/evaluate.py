@@ -55,7 +55,11 @@ def episode_statistics(rollout: TensorDictBase) -> dict[str, torch.Tensor]:
     return out
 
 
-def check_evaluation_options(*, num_episodes: int = 10, num_envs: int = 1, max_steps: int = 1000) -> None:
+#: ``evaluate_policy(max_steps=None)``'s cap: the env's own time limit ends every episode long before
+UNTIL_DONE_STEPS = 1_000_000
+
+
+def check_evaluation_options(*, num_episodes: int = 10, num_envs: int = 1, max_steps: int | None = 1000) -> None:
     """Check :func:`evaluate_policy`'s numbers (same names and defaults) without building an env.
 
     A recipe calls it before any training, so a bad evaluation option fails in seconds instead of after
@@ -72,6 +76,8 @@ def check_evaluation_options(*, num_episodes: int = 10, num_envs: int = 1, max_s
         ValueError: evaluate_policy: num_episodes must be >= 1, got 0
     """
     for name, value in (("num_episodes", num_episodes), ("num_envs", num_envs), ("max_steps", max_steps)):
+        if value is None and name == "max_steps":  # the env's own time limit
+            continue
         if value < 1:
             raise ValueError(f"evaluate_policy: {name} must be >= 1, got {value}")
 
@@ -82,7 +88,7 @@ def evaluate_policy(
     *,
     num_episodes: int = 10,
     seed: int = 0,
-    max_steps: int = 1000,
+    max_steps: int | None = 1000,
     num_envs: int = 1,
     stop_on_success: bool = False,
     normalized_score_fn: Callable[[float], float] | None = None,
@@ -95,7 +101,8 @@ def evaluate_policy(
         actor: policy writing ``"action"``; run under ``no_grad`` and deterministic exploration.
         num_episodes: number of episodes.
         seed: env seed (episodes are reproducible for a given seed).
-        max_steps: per-episode step limit.
+        max_steps: per-episode step limit; ``None``: the env's own time limit (every episode runs until
+            the env ends it; capped at :data:`UNTIL_DONE_STEPS`), e.g. 500 on Meta-World, 1000 on locomotion.
         num_envs: episodes run side by side in a ``SerialEnv``.
         stop_on_success: end an episode at its first ``success`` (Meta-World protocol).
         normalized_score_fn: maps a mean return to a normalised score (e.g. D4RL's
@@ -132,7 +139,7 @@ def evaluate_policy(
         with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
             for _ in tqdm(range(rounds), desc="eval", disable=not progress):
                 rollout = env.rollout(
-                    max_steps,
+                    UNTIL_DONE_STEPS if max_steps is None else max_steps,
                     actor,
                     auto_cast_to_device=True,
                     break_when_any_done=num_envs == 1,
