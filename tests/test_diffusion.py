@@ -718,3 +718,20 @@ def test_an_unfitted_unconditional_diffuser_refuses_to_sample():
     d = make_diffuser("tiny", obs_dim=3, action_dim=2, horizon=H, unconditional=True)
     with pytest.raises(ValueError, match="the normalizer is not fitted"):
         d.generate(num_samples=2, sampler="ddim", steps=2)
+
+
+def test_masked_norm_makes_the_condition_embedding_independent_of_its_padding():
+    """By default the encoder's GroupNorm and second convolution see the padding: the same 8 valid steps embed
+    differently at horizon 8 and 16. With ``masked_norm`` (``encoder_masked_norm``) they embed the same, and the
+    option travels with the diffuser's checkpoint."""
+    torch.manual_seed(0)
+    x = torch.randn(2, 8, 5)
+    padded = torch.cat([x, torch.zeros(2, 8, 5)], 1)
+    mask8, mask16 = torch.ones(2, 8, dtype=torch.bool), torch.cat([torch.ones(2, 8), torch.zeros(2, 8)], 1).bool()
+    for masked in (False, True):
+        enc = TrajectoryEncoder(5, embed_dim=16, masked_norm=masked)
+        with torch.no_grad():
+            short, long = enc(x, mask8)[0], enc(padded, mask16)[0][:, :8]
+        assert torch.allclose(short, long, atol=1e-5) == masked
+    d = make_diffuser("tiny", obs_dim=3, action_dim=2, horizon=H, encoder_masked_norm=True)
+    assert d.encoder.masked_norm and d.config["encoder_masked_norm"] is True

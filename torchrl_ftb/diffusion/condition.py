@@ -24,6 +24,15 @@ goal's position) and how far a channel moves reach the backbone only in part; th
 on unnormalised. Measured on Meta-World's copy task it changed little: what kept the condition out
 of the samples was the epsilon loss at high noise (BENCHMARKS, "v prediction").
 
+``masked_norm=True`` makes the embedding of a condition's valid steps independent of the padding
+after them (off by default: the authors' encoder, and every trained ``cpu``/``paper`` model so far).
+By default padded steps are zeroed at the input only: after the first convolution they hold its bias,
+each GroupNorm takes its statistics over the whole horizon, padding included, and the second
+convolution mixes padded features into the last valid steps, so a short trajectory padded to 500
+steps (a fast Meta-World success) is normalised mostly by its padding. With ``masked_norm`` each
+GroupNorm's statistics are over the valid steps only and every block's output is zeroed on padded
+steps (:class:`MaskedGroupNorm`).
+
 Example:
     >>> import torch
     >>> enc = TrajectoryEncoder(5, embed_dim=16)
@@ -45,7 +54,31 @@ import math
 import torch
 from torch import nn
 
-__all__ = ["TrajectoryEncoder"]
+__all__ = ["MaskedGroupNorm", "TrajectoryEncoder"]
+
+
+class MaskedGroupNorm(nn.GroupNorm):
+    """``nn.GroupNorm`` over ``[B, C, H]`` whose statistics are taken over the valid steps of ``mask [B, H]`` only
+    (written here: torch's GroupNorm takes no mask). A row without valid steps is left at its affine bias.
+
+    Example:
+        >>> norm = MaskedGroupNorm(2, 4)
+        >>> x, mask = torch.randn(1, 4, 6), torch.tensor([[True] * 4 + [False] * 2])
+        >>> padded = torch.cat([x[..., :4], torch.full((1, 4, 2), 50.0)], -1)
+        >>> torch.allclose(norm(x, mask)[..., :4], norm(padded, mask)[..., :4])
+        True
+    """
+
+    def forward(self, x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
+        b, c, h = x.shape
+        g = self.num_groups
+        m = mask[:, None, None, :].to(x.dtype)  # [B, 1, 1, H]
+        xg = x.reshape(b, g, c // g, h)
+        count = (m.sum(-1, keepdim=True) * (c // g)).clamp_min(1.0)
+        mean = (xg * m).sum((-1, -2), keepdim=True) / count
+        var = (((xg - mean) * m) ** 2).sum((-1, -2), keepdim=True) / count
+        y = ((xg - mean) * torch.rsqrt(var + self.eps)).reshape(b, c, h)
+        return y * self.weight[None, :, None] + self.bias[None, :, None]
 
 
 class TrajectoryEncoder(nn.Module):
@@ -58,10 +91,12 @@ class TrajectoryEncoder(nn.Module):
         score_condition: also embed the condition's normalised score (``forward(score=)``).
         linear_skip: add a pointwise linear map of the condition itself to the embedding (what
             the convolutional path's GroupNorm takes out: each trajectory's level and scale).
+        masked_norm: normalise over the valid steps only and zero padded steps after each block (module
+            docstring); another module layout, so a model trained without it does not load with it.
     """
 
     def __init__(self, transition_dim: int, *, embed_dim: int = 128, kernel_size: int = 5,
-                 score_condition: bool = False, linear_skip: bool = False) -> None:
+                 score_condition: bool = False, linear_skip: bool = False, masked_norm: bool = False) -> None:
         super().__init__()
         self.transition_dim = int(transition_dim)
         self.embed_dim = int(embed_dim)
@@ -69,14 +104,20 @@ class TrajectoryEncoder(nn.Module):
         if self.score_condition:
             self.score_mlp = nn.Sequential(nn.Linear(1, embed_dim), nn.Mish(), nn.Linear(embed_dim, embed_dim))
         groups = math.gcd(8, self.embed_dim)
-        self.net = nn.Sequential(
-            nn.Conv1d(transition_dim, embed_dim, kernel_size, padding=kernel_size // 2),
-            nn.GroupNorm(groups, embed_dim),
-            nn.Mish(),
-            nn.Conv1d(embed_dim, embed_dim, kernel_size, padding=kernel_size // 2),
-            nn.GroupNorm(groups, embed_dim),
-            nn.Mish(),
-        )
+        self.masked_norm = bool(masked_norm)
+        if self.masked_norm:
+            self.convs = nn.ModuleList([nn.Conv1d(transition_dim, embed_dim, kernel_size, padding=kernel_size // 2),
+                                        nn.Conv1d(embed_dim, embed_dim, kernel_size, padding=kernel_size // 2)])
+            self.norms = nn.ModuleList([MaskedGroupNorm(groups, embed_dim) for _ in range(2)])
+        else:
+            self.net = nn.Sequential(
+                nn.Conv1d(transition_dim, embed_dim, kernel_size, padding=kernel_size // 2),
+                nn.GroupNorm(groups, embed_dim),
+                nn.Mish(),
+                nn.Conv1d(embed_dim, embed_dim, kernel_size, padding=kernel_size // 2),
+                nn.GroupNorm(groups, embed_dim),
+                nn.Mish(),
+            )
         self.linear_skip = bool(linear_skip)
         if self.linear_skip:
             self.skip = nn.Conv1d(transition_dim, embed_dim, 1)
@@ -97,12 +138,22 @@ class TrajectoryEncoder(nn.Module):
         mask = mask.bool()
         x = x * mask[..., None].to(x.dtype)
         h = x.transpose(1, 2)
-        emb = (self.net(h) + self.skip(h) if self.linear_skip else self.net(h)).transpose(1, 2)
+        emb = self._conv_path(h, mask)
+        emb = (emb + self.skip(h) if self.linear_skip else emb).transpose(1, 2)
         if score is not None:
             if score.shape != x.shape[:1]:
                 raise ValueError(f"TrajectoryEncoder: score must be [{x.shape[0]}], got {list(score.shape)}")
             emb = emb + self.score_mlp(score[:, None].to(emb.dtype))[:, None, :]
         return emb, mask
+
+    def _conv_path(self, h: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """The two Conv1d + GroupNorm + Mish blocks on ``h [B, D, Hc]``."""
+        if not self.masked_norm:
+            return self.net(h)
+        valid = mask[:, None, :].to(h.dtype)
+        for conv, norm in zip(self.convs, self.norms):
+            h = nn.functional.mish(norm(conv(h), mask)) * valid
+        return h
 
     def null(self, batch: int, length: int) -> tuple[torch.Tensor, torch.Tensor]:
         """The null condition shaped like an encoded one: token at step 0, the rest masked out."""

@@ -31,6 +31,9 @@ Presets differ only in numbers:
   ``encoder_skip=True`` adds a pointwise linear path to the condition encoder beside its
   GroupNorm-ed convolutions (:class:`~torchrl_ftb.diffusion.TrajectoryEncoder` ``linear_skip``),
   so each condition's own level and scale reach the backbone.
+  ``encoder_masked_norm=True`` normalises the encoder's convolutions over each condition's valid steps only
+  (:class:`~torchrl_ftb.diffusion.TrajectoryEncoder` ``masked_norm``): by default a short trajectory padded to
+  the horizon is normalised mostly by its padding.
   ``prediction_type="sample"`` trains the backbone to output the clean ``x_0`` instead of the
   noise (Janner et al.'s Diffuser, ``predict_epsilon=False``); sampling, clipping and guidance
   are unchanged (:class:`~torchrl_ftb.diffusion.DiffusionProcess`). **Measured** (cpu preset, 4,500
@@ -97,6 +100,7 @@ _MODEL_DEFAULTS = dict(
     concat_condition=False,
     score_condition=False,
     encoder_skip=False,
+    encoder_masked_norm=False,
     num_train_timesteps=1000,
     beta_schedule="squaredcos_cap_v2",
     prediction_type="epsilon",
@@ -275,7 +279,8 @@ def make_diffuser(
     encoder = None if unconditional else TrajectoryEncoder(diffused, embed_dim=cfg["cond_dim"],
                                                            kernel_size=cfg["kernel_size"],
                                                            score_condition=cfg["score_condition"],
-                                                           linear_skip=cfg["encoder_skip"])
+                                                           linear_skip=cfg["encoder_skip"],
+                                                           masked_norm=cfg["encoder_masked_norm"])
     diffuser = TrajectoryDiffuser(
         backbone,
         encoder,

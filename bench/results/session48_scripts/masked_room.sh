@@ -1,0 +1,13 @@
+# session 48: session 45's tracked room cell (v_room_tracked.sh: README configuration on data with room, v prediction,
+# STEPS diffuser steps, analysis.tracked=true) with the condition encoder normalised over each condition's valid steps
+# only (diffuser.overrides encoder_masked_norm:true). By default a short trajectory padded to 500 steps (a fast
+# success: drawer-open's top block) is normalised mostly by its padding. Then what the diffuser makes of each block's
+# conditions, the top block too (session 43's cond.sh at the run's own steps; no further training).
+# usage: bash masked_room.sh TASK NOISE SEED STEPS   (venv active; one core) -> /work/runs/room_s48/...
+T=$1; N=$2; S=$3; P=$4
+. "$(dirname "$0")/../session43_scripts/common.sh"
+R=/work/runs/room_s48; mkdir -p $R; W=$R/${T}_e${N}_s${S}_v${P}_mn_tracked
+python recipes/ftb_offline.py $C diffuser.steps=$P run_dir=$W analysis.tracked=true \
+  "diffuser.overrides={prediction_type:v_prediction,encoder_masked_norm:true}" > $W.log 2>&1 || exit 1
+python bench/diffuser_conditioning.py --run-dir $W --per-block 16 --top-block --horizon 500 --streak 25 \
+  --tag room-mn${P}-s48 --steps $P --work-dir ${W}_own$P > ${W}_cond.log 2>&1
