@@ -153,6 +153,15 @@ def test_build_supplement_is_cached_and_checked(supplements):
     # a different setting never reuses the supplement: it lands in another directory
     changed = {**common, "flow": {**common["flow"], "threshold": 1.2}, "diffuser": {**common["diffuser"], "steps": 1}}
     assert build_supplement("ftb", data, **changed)[1]["path"] != info["path"]
+    # SYNTHETIC's validity limits and the dataset's termination flags are part of the key too
+    quick = {**common, "diffuser": {**common["diffuser"], "steps": 1, "sample_steps": 2}}
+    strict = {**quick, "flow": {**quick["flow"], "max_abs_z": 3.0}}
+    assert build_supplement("synthetic", data, **quick)[1]["path"] != build_supplement("synthetic", data, **strict)[1]["path"]
+    from torchrl_ftb.augmentation.augment import _fingerprint
+
+    falls = data.clone()
+    falls["next", "terminated"][0, -1] = True
+    assert _fingerprint(falls) != _fingerprint(data)
     # a score-conditioned diffuser gets each condition's normalised true return from the block pairs
     scored = {**common, "diffuser": {**common["diffuser"], "steps": 2, "overrides": {"score_condition": True}}}
     assert build_supplement("ftb", data, **scored)[1]["diffuser"]["step"] == 2

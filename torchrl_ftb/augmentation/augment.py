@@ -80,6 +80,7 @@ AUGMENTATIONS = {
     "ftb": "FTB: top-k trajectories flowed to better by a return-block conditional diffuser (§4.4)",
 }
 REWARD_KEY = ("next", "reward")
+TERMINATED_KEY = ("next", "terminated")
 #: what an augmented dataset holds (the keys both real and generated trajectories have)
 TRANSITION_KEYS: tuple = ("observation", "action", "mask", ("next", "observation"), REWARD_KEY,
                           ("next", "done"), ("next", "terminated"), ("next", "truncated"))
@@ -98,11 +99,11 @@ def load_supplement(path: str | Path) -> tuple[TensorDict, dict[str, Any]]:
 
 def ends_in_termination(trajs: TensorDictBase) -> bool:
     """Whether any dataset episode ends in ``("next", "terminated")`` (e.g. a locomotion fall)."""
-    if ("next", "terminated") not in trajs.keys(True):
+    if TERMINATED_KEY not in trajs.keys(True):
         return False
     mask = trajs.get("mask")
     last = (mask.sum(-1) - 1).clamp(min=0)
-    term = trajs.get(("next", "terminated")).reshape(mask.shape)
+    term = trajs.get(TERMINATED_KEY).reshape(mask.shape)
     return bool(term[torch.arange(mask.shape[0]), last].any())
 
 
@@ -261,10 +262,12 @@ def _check_options(options: Mapping[str, Any], fn: Callable, section: str, *, re
 
 
 def _fingerprint(trajs: TensorDictBase) -> str:
-    """A content hash of a dataset's valid (observation, action, reward) steps."""
+    """A content hash of a dataset's valid (observation, action, reward) steps and termination flags (which
+    decide how a generated trajectory that ends early is closed, :func:`ends_in_termination`)."""
     mask = trajs.get("mask")
     h = hashlib.sha256(str(list(trajs.batch_size)).encode())
-    for key in ("observation", "action", REWARD_KEY):
+    keys = ["observation", "action", REWARD_KEY] + ([TERMINATED_KEY] if TERMINATED_KEY in trajs.keys(True) else [])
+    for key in keys:
         h.update(trajs.get(key)[mask].detach().to(torch.float32).cpu().contiguous().numpy().tobytes())
     return h.hexdigest()[:16]
 
@@ -338,9 +341,14 @@ def build_supplement(
     _check_options(dict(synthetic or {}), synthetic_supplement, "synthetic", reserved=(
         "normalizer", "min_length", "max_abs_z", "action_tolerance"))
     syn = {"num_samples": int(flow_opts.get("top_k", 100)), **dict(synthetic or {})}
+    # SYNTHETIC's validity rules are the flow's: its options belong to its cache key too (a changed limit re-filters)
+    validity = {"max_abs_z": float(flow_opts.get("max_abs_z", 30.0)),
+                "action_tolerance": float(flow_opts.get("action_tolerance", 0.5)),
+                "min_length": int(flow_opts.get("min_length") or default_min_length(trajs))}
     config = {"kind": kind, "dataset": _fingerprint(trajs), "preset": preset, "overrides": overrides,
               "settings": settings, "seed": int(seed)}
-    config.update({"flow": flow_opts, "num_blocks": int(num_blocks)} if kind == "ftb" else {"synthetic": syn})
+    config.update({"flow": flow_opts, "num_blocks": int(num_blocks)} if kind == "ftb"
+                  else {"synthetic": syn, "validity": validity})
     digest = hashlib.sha256(json.dumps(config, sort_keys=True, default=str).encode()).hexdigest()[:12]
     path = Path(cache_dir).expanduser() / f"{kind}-{digest}"
     path.mkdir(parents=True, exist_ok=True)
@@ -378,11 +386,9 @@ def build_supplement(
         info["flow_stats"] = result.stats
         info["block_sizes"] = torch.bincount(block_ids).tolist()
     else:
-        min_length = default_min_length(trajs)
-        generated, info["synthetic"] = synthetic_supplement(  # the flow's validity rules
-            sampler, normalizer=model.normalizer, min_length=min_length,
-            max_abs_z=float(flow_opts.get("max_abs_z", 30.0)),
-            action_tolerance=float(flow_opts.get("action_tolerance", 0.5)), **syn)
+        # the flow's validity rules; the shortest length: flow.min_length where set, else half the dataset's
+        # shortest (an unconditional model samples the whole dataset, the flow only its top-k)
+        generated, info["synthetic"] = synthetic_supplement(sampler, normalizer=model.normalizer, **validity, **syn)
     info.update(_describe(generated, returns, true_reward_fn))
     supplement = as_transitions(generated, terminal_on_early_end=ends_in_termination(trajs)) if generated.batch_size[0] \
         else generated
