@@ -238,7 +238,7 @@ class RunDir:
         bc_half_done = (self.ckpt / "bc.pt").is_file() and not self.done("bc") and "bc" not in free
         if not bc_half_done or not bool((old.get("bc") or {}).get("relabel_actions", False)):
             return
-        before, now = (old.get("tracker") or {}).get("steps", 4000), tracker_steps(cfg)
+        before, now = tracker_steps(old), tracker_steps(cfg)
         if before != now:
             raise ValueError(f"tracker.steps={now}: {self.ckpt / 'bc.pt'} is half-trained on actions relabelled by a "
                              f"tracker of {before} steps (bc.relabel_actions); keep tracker.steps={before} or pass "
@@ -628,15 +628,15 @@ def stage_flow(cfg, run: RunDir, trajs, scores, block_ids, sampler, model, true_
         "trajectories": res.trajectories, "original": res.original, "generated": res.generated}
 
 
-def _tracker_count(cfg: DictConfig, key: str, default: int) -> int:
+def _tracker_count(cfg: DictConfig | dict, key: str, default: int) -> int:
     """``tracker.<key>`` as an int >= 1 (``default`` when absent); a clear error naming the option otherwise."""
-    n = int(cfg.get("tracker", {}).get(key, default))
+    n = int((cfg.get("tracker") or {}).get(key, default))
     if n < 1:
         raise ValueError(f"tracker.{key}={n}: must be >= 1")
     return n
 
 
-def tracker_steps(cfg: DictConfig) -> int:
+def tracker_steps(cfg: DictConfig | dict) -> int:
     """``tracker.steps``: Adam steps fitting the run's path tracker (>= 1; default 4000)."""
     return _tracker_count(cfg, "steps", 4000)
 

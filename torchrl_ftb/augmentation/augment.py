@@ -83,7 +83,7 @@ REWARD_KEY = ("next", "reward")
 TERMINATED_KEY = ("next", "terminated")
 #: what an augmented dataset holds (the keys both real and generated trajectories have)
 TRANSITION_KEYS: tuple = ("observation", "action", "mask", ("next", "observation"), REWARD_KEY,
-                          ("next", "done"), ("next", "terminated"), ("next", "truncated"))
+                          ("next", "done"), TERMINATED_KEY, ("next", "truncated"))
 GENERATED_KEYS = ("observation", "action", "mask", REWARD_KEY)
 SUPPLEMENT_FORMAT = "torchrl_ftb.supplement"
 

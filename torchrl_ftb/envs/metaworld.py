@@ -257,7 +257,7 @@ def make_metaworld_env(
     base.set_info_dict_reader(SuccessInfoReader())
     env = TransformedEnv(base, DoubleToFloat())
     env.set_seed(int(seed))
-    # set_seed reseeds the unwrapped env's np_random: re-apply the goal generator
+    # set_seed's reset drew a goal from the generator it seeded: restart it, so the first episode draws the first
     configure_goal(gym_env, random_goal=random_goal, seed=int(seed))
     return env
 

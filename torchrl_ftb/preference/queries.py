@@ -201,7 +201,6 @@ def make_query_labels(
     if num_pairs > n * (n - 1) // 2:
         raise ValueError(f"make_query_labels: asked for {num_pairs} pairs but {n} trajectories have only "
                          f"{n * (n - 1) // 2} distinct pairs")
-    pool = trajs.select("observation", "action", "mask", ("next", "terminated"), strict=False)  # the fill's flag
     labels = make_scripted_labels(trajs, num_pairs=initial, teacher=teacher, seed=seed).select(*_LABEL_KEYS)
     round_ = 0
     while labels.batch_size[0] < num_pairs:
@@ -209,7 +208,7 @@ def make_query_labels(
         asked = torch.stack([labels["index0"], labels["index1"]], -1)
         round_seed = seed * 1000 + round_
         if bool((labels["label"] != 0.5).any()):
-            scores = _provisional_scores(pool, labels, members=members if strategy == "disagreement" else 1,
+            scores = _provisional_scores(trajs, labels, members=members if strategy == "disagreement" else 1,
                                          seed=round_seed, steps=steps, lr=lr, model_kwargs=model_kwargs,
                                          normalize_observations=normalize_observations, device=device)
             i, j = select_queries(scores, count=count, strategy=strategy, asked=asked, distinct=distinct,
@@ -235,4 +234,5 @@ def _provisional_scores(pool: TensorDictBase, labels: TensorDictBase, *, members
         model.fit_normalizer(pool)
     train_score_model(model, labels.select("tau0", "tau1", "label"), steps=steps, lr=lr, eval_fraction=0.0,
                       seed=seed, progress=False, device=device)
-    return score_trajectories(model, pool, members=True).cpu()
+    # what the model reads (its stop-rule fill's termination flag too, where present), nothing else
+    return score_trajectories(model, pool.select(*model.read_keys, strict=False), members=True).cpu()
