@@ -110,6 +110,31 @@ def test_loss_ignores_padding_but_not_valid_steps(data):
     assert abs(value(changed) - base) > 1e-4
 
 
+def test_padding_loss_supervises_the_data_channels_on_padded_steps(data):
+    """By default the denoiser's data output on a padded target step is free; ``padding_loss`` pulls it to the
+    padding's target (the valid steps' and the validity channel's terms are the same either way)."""
+    batch = _pairs(data, torch.arange(4), torch.arange(4, 8))
+    mask = torch.arange(H) < torch.tensor([9, 4, 12, 6])[:, None]
+    batch.set(("target", "mask"), mask)
+    for k in ("observation", "action"):
+        batch["target", k][~mask] = 0.0
+    values = {}
+    for padding_loss in (False, True):
+        d = _diffuser(data, padding_loss=padding_loss).eval()
+        assert d.config["padding_loss"] is padding_loss
+        for shift in (0.0, 3.0):
+            def hook(module, args, out, shift=shift):
+                out = out.clone()
+                out[..., :-1][~mask] += shift  # the data channels on padded steps only
+                return out
+            handle = d.backbone.register_forward_hook(hook)
+            torch.manual_seed(123)
+            values[padding_loss, shift] = DiffusionLoss(d)(batch)["loss_diffusion"].item()
+            handle.remove()
+    assert values[False, 3.0] == pytest.approx(values[False, 0.0], abs=1e-6)
+    assert values[True, 3.0] > values[True, 0.0] + 1.0
+
+
 def test_loss_keys_and_errors(data):
     d = _diffuser(data)
     loss = DiffusionLoss(d)

@@ -3,7 +3,8 @@
 ``E_{t, eps, (tau0 -> tau1), beta~Bern(p)} || eps - eps_theta(tau1_t, (1-beta) tau0 + beta null, t) ||^2``
 
 averaged over the supervised entries: state/action (/reward) channels on the target's valid
-steps only, the validity channel on every step (see :mod:`torchrl_ftb.diffusion.model`).
+steps only (every step with the diffuser's ``padding_loss``: the padding's target is 0), the
+validity channel on every step (see :mod:`torchrl_ftb.diffusion.model`).
 
 Example:
     >>> import torch
@@ -118,9 +119,10 @@ class DiffusionLoss(LossModule):
             cond_emb, cond_mask = d.encode_condition(d.condition_input(craw, cmask), cmask, score=score, drop=drop)
         out = d.backbone(x_t, t, cond_emb, cond_mask)
         err = (out.float() - d.process.training_target(x0, noise, t)).pow(2)
-        data_err = (err[..., :-1] * mask[..., None]).sum()
+        supervised = torch.ones_like(mask) if d.padding_loss else mask
+        data_err = (err[..., :-1] * supervised[..., None]).sum()
         valid_err = err[..., -1].sum()
-        n_data = mask.sum() * d.diffused_dim
+        n_data = supervised.sum() * d.diffused_dim
         loss = (data_err + valid_err) / (n_data + mask.numel())
         return TensorDict(
             {

@@ -77,6 +77,8 @@ class TrajectoryDiffuser(nn.Module):
         reward_channel: also diffuse the reward (``("next", "reward")``).
         unconditional: no condition at all (SYNTHETIC-style baseline).
         cond_drop_prob: probability of replacing the condition by the null one in training (CFG).
+        padding_loss: the training loss also supervises the data channels on padded target steps
+            (target 0, the padding); ``False``: the validity channel only there.
         ema_decay: decay of the EMA of the networks.
         horizon: default horizon of generated trajectories (used when no condition is given).
         clip_margin: at sampling, the predicted ``x_0`` is clamped to the data's range (z-space)
@@ -102,6 +104,7 @@ class TrajectoryDiffuser(nn.Module):
         reward_channel: bool = False,
         unconditional: bool = False,
         cond_drop_prob: float = 0.25,
+        padding_loss: bool = False,
         ema_decay: float = 0.995,
         horizon: int | None = None,
         clip_margin: float | None = 0.5,
@@ -134,6 +137,7 @@ class TrajectoryDiffuser(nn.Module):
         if not 0.0 <= cond_drop_prob < 1.0:
             raise ValueError(f"cond_drop_prob must be in [0, 1), got {cond_drop_prob}")
         self.cond_drop_prob = float(cond_drop_prob)
+        self.padding_loss = bool(padding_loss)
         self.horizon = horizon
         self.process = process
         if backbone.transition_dim != self.transition_dim:

@@ -34,6 +34,10 @@ Presets differ only in numbers:
   ``encoder_masked_norm=True`` normalises the encoder's convolutions over each condition's valid steps only
   (:class:`~torchrl_ftb.diffusion.TrajectoryEncoder` ``masked_norm``): by default a short trajectory padded to
   the horizon is normalised mostly by its padding.
+  ``padding_loss=True`` also supervises the data channels on padded steps (their target is the padding, 0 in
+  z-space; :class:`~torchrl_ftb.diffusion.DiffusionLoss`). By default only the validity channel is supervised there,
+  so the denoiser's output on a generated trajectory's padding is unconstrained, while sampling runs every step and
+  the convolutions carry it into the last valid steps.
   ``prediction_type="sample"`` trains the backbone to output the clean ``x_0`` instead of the
   noise (Janner et al.'s Diffuser, ``predict_epsilon=False``); sampling, clipping and guidance
   are unchanged (:class:`~torchrl_ftb.diffusion.DiffusionProcess`). **Measured** (cpu preset, 4,500
@@ -101,6 +105,7 @@ _MODEL_DEFAULTS = dict(
     score_condition=False,
     encoder_skip=False,
     encoder_masked_norm=False,
+    padding_loss=False,
     num_train_timesteps=1000,
     beta_schedule="squaredcos_cap_v2",
     prediction_type="epsilon",
@@ -292,6 +297,7 @@ def make_diffuser(
         reward_channel=reward_channel,
         unconditional=unconditional,
         cond_drop_prob=cfg["cond_drop_prob"],
+        padding_loss=cfg["padding_loss"],
         ema_decay=cfg["ema_decay"],
         horizon=horizon,
         clip_margin=cfg["clip_margin"],
