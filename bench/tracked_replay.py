@@ -12,6 +12,7 @@ Usage::
     python bench/tracked_replay.py --run-dirs RUN [RUN ...] --horizon 500 --out bench/results/tracked.json
     python bench/tracked_replay.py --run-dirs RUN --candidates 4 --out F   # shooting: exact on the top-k
     python bench/tracked_replay.py --run-dirs RUN --candidates 4 --lookahead 5 --out F   # scored 5 steps ahead
+    python bench/tracked_replay.py --run-dirs RUN --candidates 4 --readers 4 --out F   # each path's mean of 4 readings
     python bench/tracked_replay.py --summarize bench/results/tracked_replay_s31/*.json
 """
 from __future__ import annotations
@@ -33,14 +34,14 @@ from torchrl_ftb.policy import fit_path_tracker  # noqa: E402
 
 
 def tracked(run: Path, *, horizon: int, tracker_steps: int, seed: int, progress: bool, candidates: int = 1,
-            noise: float = 0.3, lookahead: int = 1) -> dict:
+            noise: float = 0.3, lookahead: int = 1, readers: int = 1) -> dict:
     """:func:`torchrl_ftb.analysis.tracked_improvement` of a finished run directory's final set (``candidates``
     > 1: shooting in the simulator, :func:`torchrl_ftb.analysis.track_paths`, scored over ``lookahead`` steps)."""
     cfg, data, meta, final, original, generated, rows = load_flow(run)
     tracker = fit_path_tracker(data, steps=tracker_steps, seed=seed, progress=progress)
     out = tracked_improvement(final, original, generated, data, meta, task=str(cfg.env.name), horizon=horizon,
                               tracker=tracker, original_rows=rows, candidates=candidates, noise=noise,
-                              lookahead=lookahead, progress=progress)
+                              lookahead=lookahead, readers=readers, progress=progress)
     return {"env": str(cfg.env.name), "seed": int(cfg.seed), "top_k": int(original.batch_size[0]),
             "inpaint_start": bool(cfg.diffuser.get("inpaint_start", False)), **out}
 
@@ -104,6 +105,9 @@ def main() -> None:
     parser.add_argument("--lookahead", type=int, default=1,
                         help="shooting: steps each candidate is scored over (the path's own next actions shifted by "
                              "its offset); 1 = greedy")
+    parser.add_argument("--readers", type=int, default=1,
+                        help="shooting: read each generated path this many times, each with other perturbations, "
+                             "and take the means (a property of the path, not of one reading's draws)")
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "tracked_replay.json")
     parser.add_argument("--no-progress", action="store_true")
     args = runs_from_args(parser, summarize)
@@ -111,10 +115,10 @@ def main() -> None:
         return
     measure_runs(args.run_dirs, args.out, {"horizon": args.horizon, "tracker_steps": args.tracker_steps,
                                            "seed": args.seed, "candidates": args.candidates, "noise": args.noise,
-                                           "lookahead": args.lookahead},
+                                           "lookahead": args.lookahead, "readers": args.readers},
                  lambda run: tracked(run, horizon=args.horizon, tracker_steps=args.tracker_steps, seed=args.seed,
                                      progress=not args.no_progress, candidates=args.candidates, noise=args.noise,
-                                     lookahead=args.lookahead),
+                                     lookahead=args.lookahead, readers=args.readers),
                  describe)
 
 

@@ -654,6 +654,17 @@ def tracker_candidates(cfg: DictConfig) -> int:
     return _tracker_count(cfg, "candidates", 1)
 
 
+def tracker_readers(cfg: DictConfig) -> int:
+    """``tracker.readers``: how many times the Meta-World shooting reading (``tracker.candidates`` > 1) reads each
+    generated path, each with other perturbations; the path's numbers are the means (>= 1; default 1;
+    :func:`torchrl_ftb.analysis.tracked_improvement`). More than 1 needs shooting."""
+    n = _tracker_count(cfg, "readers", 1)
+    if n > 1 and tracker_candidates(cfg) < 2:
+        raise ValueError(f"tracker.readers={n}: more than one reading needs shooting (tracker.candidates > 1); the "
+                         f"inverse-dynamics tracker alone reads a path the same every time")
+    return n
+
+
 def path_tracker(cfg: DictConfig, run: RunDir, trajs: TensorDictBase, *, progress: bool) -> PathTracker:
     """The goal-conditioned inverse-dynamics tracker that ``bc.relabel_actions`` and ``analysis.tracked`` share
     (:func:`torchrl_ftb.policy.fit_path_tracker` on the dataset, ``tracker.steps`` Adam steps, seeded by
@@ -775,7 +786,7 @@ def tracked_analysis(cfg: DictConfig, run: RunDir, flow: dict, trajs: TensorDict
         out = tracked_improvement(flow["trajectories"], flow["original"], source, trajs, meta,
                                   task=str(cfg.env.name), horizon=horizon, tracker=tracker,
                                   original_rows=flow.get("original_indices"), candidates=tracker_candidates(cfg),
-                                  lookahead=tracker_lookahead(cfg), progress=progress)
+                                  lookahead=tracker_lookahead(cfg), readers=tracker_readers(cfg), progress=progress)
         extra = {"tracker_steps": tracker_steps(cfg)}
     else:
         return None  # no goals and starts to track from (toy, D4RL/Minari Meta-World files)
@@ -845,9 +856,10 @@ def tracked_rows(tr: dict | None) -> list[tuple[str, str]]:
     shooting = "simulator shooting tracker" + (f", {lookahead}-step lookahead" if lookahead > 1 else "")
     shot = tr.get("shooting") or {}  # Meta-World; runs before session 47 did not record it: the tracker alone
     if int(shot.get("candidates", 1)) > 1:
-        look = int(shot.get("lookahead", 1))
+        look, readers = int(shot.get("lookahead", 1)), int(shot.get("readers", 1))
         shot_text = (f"; shooting, {int(shot['candidates'])} candidates"
-                     + (f", {look}-step lookahead" if look > 1 else ""))
+                     + (f", {look}-step lookahead" if look > 1 else "")
+                     + (f", generated paths: mean of {readers} readings" if readers > 1 else ""))
     else:
         shot_text = ""
     rows = [((f"true return top-k tracked in closed loop ({shooting})" if locomotion else
@@ -1008,6 +1020,7 @@ def run(cfg: DictConfig) -> dict:
     tracker_steps(cfg)
     tracker_lookahead(cfg)
     tracker_candidates(cfg)
+    tracker_readers(cfg)
     validity_reference_steps(cfg)
     if flow_filter(cfg) == "true_return" and not cfg.flow.true_reward:
         raise ValueError("flow.filter=true_return ranks and accepts by the ground-truth return: it needs "

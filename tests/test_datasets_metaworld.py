@@ -448,7 +448,24 @@ def test_shooting_tracker_reproduces_recorded_paths_and_corrects_wrong_actions(t
     assert out["fidelity"]["tracked_mean"] == pytest.approx(float(recorded.mean()), rel=1e-5)
     assert out["fidelity"]["tracked_max"] == pytest.approx(float(recorded.max()), rel=1e-5)
     assert out["fidelity"]["hand_deviation_max"] < 1e-4
-    assert out["shooting"] == {"candidates": 3, "noise": 0.3, "lookahead": 1}
+    assert out["shooting"] == {"candidates": 3, "noise": 0.3, "lookahead": 1, "readers": 1}
+    # readers: generated paths the simulator cannot follow (the hand shifted 5 cm from step 5) read again with other
+    # perturbations; a path's numbers are its means over the readings, and reading 0 is the single reading
+    shifted, generated = final.clone(), torch.tensor([1, 1, 0, 0]) > 0
+    shifted["observation"][:2, 5:, 0:3] += 0.05
+    kw = dict(task=task, horizon=150, tracker=tracker, original_rows=rows, candidates=3)
+    one = tracked_improvement(shifted, original, generated, td, meta, **kw)
+    many = tracked_improvement(shifted, original, generated, td, meta, readers=3, **kw)
+    per = [s["tracked_stop_rule_per_reader"] for s in many["samples"]]
+    assert [p[0] for p in per] == pytest.approx([s["tracked_stop_rule"] for s in one["samples"]])
+    assert [s["tracked_stop_rule"] for s in many["samples"]] == pytest.approx([sum(p) / 3 for p in per])
+    assert all(0.0 <= s["tracked_success"] <= 1.0 for s in many["samples"])
+    assert many["tracked_per_reader"][0] == pytest.approx(one["tracked"]) and len(many["tracked_per_reader"]) == 3
+    assert many["fidelity"] == one["fidelity"] and many["shooting"]["readers"] == 3
+    assert any(len(set(p)) > 1 for p in per)  # other perturbations, another reading
+    with pytest.raises(ValueError, match="needs shooting"):
+        tracked_improvement(shifted, original, generated, td, meta, task=task, horizon=150, tracker=tracker,
+                            readers=2)
     # off path is judged against the tracker alone (shooting leaves real paths by nothing, generated ones by more)
     alone = tracked_improvement(final, original, torch.tensor([1, 1, 0, 0]) > 0, td, meta, task=task, horizon=150,
                                 tracker=tracker, original_rows=rows)
@@ -459,6 +476,12 @@ def test_shooting_tracker_reproduces_recorded_paths_and_corrects_wrong_actions(t
     recipe = load_script(root / "recipes" / "ftb_offline.py", "recipe_shooting_mw")
     with pytest.raises(ValueError, match="tracker.candidates=0"):
         recipe.tracker_candidates(OmegaConf.merge(cfg, {"tracker": {"candidates": 0}}))
+    with pytest.raises(ValueError, match="tracker.readers=2: more than one reading needs shooting"):
+        recipe.tracker_readers(OmegaConf.merge(cfg, {"tracker": {"readers": 2}}))
+    assert recipe.tracker_readers(OmegaConf.merge(cfg, {"tracker": {"readers": 2, "candidates": 4}})) == 2
     table = report_rows(recipe, analysis={"tracked": {**out, "shooting": {**out["shooting"], "lookahead": 5}}})
     assert ("true return top-k tracked in closed loop (stop rule, 150 steps; shooting, 3 candidates, 5-step "
             "lookahead): mean / max before -> after") in table
+    table = report_rows(recipe, analysis={"tracked": many})
+    assert ("true return top-k tracked in closed loop (stop rule, 150 steps; shooting, 3 candidates, generated "
+            "paths: mean of 3 readings): mean / max before -> after") in table

@@ -54,7 +54,7 @@ from torchrl_ftb.policy.inverse_dynamics import PathTracker
 def track_paths(task: str, jobs: list[tuple[int, int]], paths: torch.Tensor, lengths: list[int],
                 tracker: PathTracker, *, seed: int, max_steps: int, on_episode=None,
                 actions: torch.Tensor | None = None, candidates: int = 1, noise: float = 0.3,
-                lookahead: int = 1) -> list[dict]:
+                lookahead: int = 1, reader: int = 0) -> list[dict]:
     """Closed-loop tracked replays: each dataset episode's goal and start (``jobs``, :func:`episode_jobs`), then
     ``tracker`` heading for its path (``paths [K, H, D]`` observations, ``lengths`` valid steps each) until the
     data's stop rule or ``max_steps``. Returns per-step episodes, as
@@ -67,7 +67,8 @@ def track_paths(task: str, jobs: list[tuple[int, int]], paths: torch.Tensor, len
     greedily, one step at a time, which is no upper bound of its own actions or of the tracker (a nearer next
     state can lead off a path the own actions would have finished; ``lookahead > 1`` scores each candidate over
     that many steps, the controller's ``lookahead``). Each path's perturbations are seeded by
-    ``seed`` and the path's own numbers, so a path reads the same whatever is tracked with it.
+    ``seed``, the path's own numbers and ``reader`` (0: as before readers existed), so a path reads the same
+    whatever is tracked with it, and another ``reader`` draws other perturbations of the same reading.
 
     Example:
         >>> eps = track_paths("button-press-v3", [(0, 0)], data["observation"][:1], [100], tracker,
@@ -86,7 +87,7 @@ def track_paths(task: str, jobs: list[tuple[int, int]], paths: torch.Tensor, len
         acts = actions.double().cpu().numpy()
         controllers = [MetaWorldShootingController(
             p, int(n), own_actions=a, proposal=c, candidates=candidates, noise=noise, lookahead=lookahead,
-            seed=(int(seed), zlib.crc32(p[:int(n)].tobytes() + a[:int(n)].tobytes())))
+            seed=(int(seed), zlib.crc32(p[:int(n)].tobytes() + a[:int(n)].tobytes()), *([int(reader)] if reader else [])))
             for p, a, n, c in zip(paths, acts, lengths, controllers)]
     return generate_metaworld_episodes(task, jobs, seed=seed, noise=0.0, max_steps=max_steps,
                                        on_episode=on_episode, controllers=controllers)
@@ -116,6 +117,7 @@ def tracked_improvement(
     candidates: int = 1,
     noise: float = 0.3,
     lookahead: int = 1,
+    readers: int = 1,
     progress: bool = False,
 ) -> dict:
     """The flow's improvement (original top-k -> final set) with every trajectory's states tracked in closed loop.
@@ -135,6 +137,11 @@ def tracked_improvement(
             largest hand deviation of the tracker alone on the top-k (tracked again for it; ``fidelity``'s
             ``tracker_alone_*``).
         lookahead: with shooting, the steps each candidate action is scored over (1: greedy; :func:`track_paths`).
+        readers: with shooting, read every generated path this many times, each with other perturbations
+            (:func:`track_paths`' ``reader`` 0, 1, ...), and take its mean tracked return, success rate and hand
+            deviation over the readings: a property of the path rather than of one reading's draws (on
+            sweep-into one reading's success is a lottery, BENCHMARKS.md session 48). The top-k is read once:
+            shooting reproduces a recorded path whatever the perturbations (its own action wins ties).
         progress: a progress bar over the episodes.
 
     Returns:
@@ -145,7 +152,9 @@ def tracked_improvement(
         recorded vs tracked mean, max and success rate, and the tracked hand's median and largest deviation
         from the recorded path), ``generated`` (count, median hand deviation, success rate, mean claimed and
         tracked return of the generated samples, how many are off path) and ``samples`` (per generated
-        trajectory).
+        trajectory). With ``readers > 1`` the generated samples' numbers are means over the readings (a sample's
+        ``tracked_success`` is its success rate, ``tracked_stop_rule_per_reader`` its readings), and
+        ``tracked_per_reader`` holds each reading's own ``return_summary``.
 
     Example:
         >>> tracker = fit_path_tracker(data)  # doctest: +SKIP
@@ -153,6 +162,10 @@ def tracked_improvement(
         ...                           task="drawer-open-v3", horizon=500, tracker=tracker)  # doctest: +SKIP
         >>> out["tracked"]["true_return_mean_after"]  # doctest: +SKIP
     """
+    if readers < 1 or (readers > 1 and candidates < 2):
+        raise ValueError(f"tracked_improvement: readers must be >= 1, and more than one reading needs shooting "
+                         f"(candidates > 1; the tracker alone is deterministic), got readers={readers}, "
+                         f"candidates={candidates}")
     final, original, generated = checked_final_set("tracked_improvement", task, final, original, generated, meta)
     data_obs = data["observation"]
     rows = match_rows(original["observation"].float(), data_obs) if original_rows is None else original_rows.cpu()
@@ -162,15 +175,22 @@ def tracked_improvement(
     actions = torch.cat([original["action"], gen["action"]], 0)
     lengths = [int(n) for n in torch.cat([original["mask"], gen["mask"]], 0).sum(-1).tolist()]
     jobs = episode_jobs(meta, torch.cat([rows, start_row]))
-    bar = tqdm(total=len(jobs), desc=f"{task} tracked replays", disable=not progress)
-    episodes = track_paths(task, jobs, paths, lengths, tracker, seed=int(meta["seed"]), max_steps=int(meta["max_steps"]),
-                           on_episode=lambda: bar.update(1), actions=actions, candidates=candidates, noise=noise,
-                           lookahead=lookahead)
-    bar.close()
-    tracked = replay_returns(episodes, horizon=horizon)[:, 1]
-    success = torch.tensor([bool(ep["success"].any()) for ep in episodes])
-    deviation = torch.tensor(_hand_deviation(episodes, paths, lengths), dtype=torch.float64)
     k = original.batch_size[0]
+    bar = tqdm(total=len(jobs) + (readers - 1) * (len(jobs) - k), desc=f"{task} tracked replays", disable=not progress)
+    readings = []  # per reading: (tracked return, success, hand deviation) of the paths it read
+    for reader in range(readers):
+        part = slice(0 if reader == 0 else k, None)
+        episodes = track_paths(task, jobs[part], paths[part], lengths[part], tracker, seed=int(meta["seed"]),
+                               max_steps=int(meta["max_steps"]), on_episode=lambda: bar.update(1),
+                               actions=actions[part], candidates=candidates, noise=noise, lookahead=lookahead,
+                               reader=reader)
+        readings.append((replay_returns(episodes, horizon=horizon)[:, 1],
+                         torch.tensor([float(ep["success"].any()) for ep in episodes], dtype=torch.float64),
+                         torch.tensor(_hand_deviation(episodes, paths[part], lengths[part]), dtype=torch.float64)))
+    bar.close()
+    generated_reads = [tuple(x[k:] for x in readings[0])] + readings[1:]
+    tracked, success, deviation = (torch.cat([readings[0][i][:k], torch.stack([g[i] for g in generated_reads]).mean(0)])
+                                   for i in range(3))
     by_row = dict(zip(rows.tolist(), tracked[:k].tolist()))
     final_rows = match_rows(final[~generated]["observation"].float(), data_obs) if bool((~generated).any()) else []
     missing = [int(r) for r in torch.as_tensor(final_rows).tolist() if int(r) not in by_row]
@@ -202,9 +222,17 @@ def tracked_improvement(
     off_path = torch.zeros(final.batch_size[0], dtype=torch.bool)
     off_path[generated] = deviation[k:] > limit
     samples = [{"start_row": int(r), "length": int(n), "claimed_stop_rule": float(c), "tracked_stop_rule": float(t),
-                "tracked_success": bool(s), "hand_deviation": float(d)}
+                "tracked_success": bool(s) if readers == 1 else float(s), "hand_deviation": float(d)}
                for r, n, c, t, s, d in zip(start_row.tolist(), lengths[k:], claimed1[generated], tracked[k:],
                                            success[k:], deviation[k:])]
+    per_reader = []
+    if readers > 1:
+        for i, sample in enumerate(samples):
+            sample["tracked_stop_rule_per_reader"] = [float(g[0][i]) for g in generated_reads]
+        for g in generated_reads:
+            after_r = after.clone()
+            after_r[generated] = g[0]
+            per_reader.append(return_summary(tracked[:k], after_r))
     n_gen = len(samples)
     gen_summary = {"num_generated": n_gen,
                    "hand_deviation_median": float(deviation[k:].median()) if n_gen else None,
@@ -213,12 +241,13 @@ def tracked_improvement(
                    "tracked_stop_rule_mean": float(tracked[k:].mean()) if n_gen else None,
                    "off_path": int(off_path.sum())}
     return {"horizon": horizon,
-            "shooting": {"candidates": int(candidates), "noise": float(noise), "lookahead": int(lookahead)},
+            "shooting": {"candidates": int(candidates), "noise": float(noise), "lookahead": int(lookahead),
+                         "readers": int(readers)},
             "tracked": return_summary(tracked[:k], after),
             "tracked_on_path": (return_summary(tracked[:k], after[~off_path]) if bool((~off_path).any())
                                 else {key: float("nan") for key in return_summary(tracked[:k], tracked[:k])}),
             "claimed": return_summary(claimed0, claimed1), "fidelity": fidelity, "generated": gen_summary,
-            "samples": samples}
+            "samples": samples, **({"tracked_per_reader": per_reader} if readers > 1 else {})}
 
 
 def observation_scale(trajs: TensorDictBase) -> torch.Tensor:

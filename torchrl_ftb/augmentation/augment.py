@@ -48,7 +48,7 @@ from typing import Any, Callable, Mapping
 import torch
 from tensordict import TensorDict, TensorDictBase
 
-from torchrl_ftb.data import atomic_torch_save, read_checkpoint, validate_trajectories
+from torchrl_ftb.data import REWARD_KEY, TERMINATED_KEY, atomic_torch_save, read_checkpoint, validate_trajectories
 from torchrl_ftb.data.labels import true_return
 from torchrl_ftb.data.trajectories import atomic_write_text
 from torchrl_ftb.diffusion import DiffusionSampler, make_diffuser, run_settings, train_diffuser
@@ -79,8 +79,6 @@ AUGMENTATIONS = {
     "synthetic": "SYNTHETIC: unconditional trajectory diffuser samples (Lu et al., 2023)",
     "ftb": "FTB: top-k trajectories flowed to better by a return-block conditional diffuser (§4.4)",
 }
-REWARD_KEY = ("next", "reward")
-TERMINATED_KEY = ("next", "terminated")
 #: what an augmented dataset holds (the keys both real and generated trajectories have)
 TRANSITION_KEYS: tuple = ("observation", "action", "mask", ("next", "observation"), REWARD_KEY,
                           ("next", "done"), TERMINATED_KEY, ("next", "truncated"))
@@ -149,7 +147,7 @@ def as_transitions(trajs: TensorDictBase, *, terminal_on_early_end: bool) -> Ten
     for key in ("observation", "action", REWARD_KEY):
         out.set(key, out.get(key) * m3)
     out.set(("next", "observation"), next_obs)
-    out.set(("next", "terminated"), terminated)
+    out.set(TERMINATED_KEY, terminated)
     out.set(("next", "truncated"), truncated)
     out.set(("next", "done"), terminated | truncated)
     return out[length > 0]

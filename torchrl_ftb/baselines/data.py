@@ -34,7 +34,7 @@ from tensordict.nn import TensorDictModule, TensorDictModuleBase
 from torchrl.data import ReplayBuffer
 from torchrl.envs.transforms import ModuleTransform, RewardScaling, Transform
 
-from torchrl_ftb.data import trajectories_to_flat, validate_trajectories
+from torchrl_ftb.data import REWARD_KEY, TERMINATED_KEY, trajectories_to_flat, validate_trajectories
 from torchrl_ftb.policy import make_transition_buffer
 
 __all__ = [
@@ -48,9 +48,8 @@ __all__ = [
     "select_top_trajectories",
 ]
 
-REWARD_KEY = ("next", "reward")
 #: what an actor-critic update reads (the reward may come from a transform instead)
-TRANSITION_KEYS: tuple = ("observation", "action", ("next", "observation"), ("next", "done"), ("next", "terminated"))
+TRANSITION_KEYS: tuple = ("observation", "action", ("next", "observation"), ("next", "done"), TERMINATED_KEY)
 
 RewardNormalization = Literal["none", "return_range", "standardize"]
 

@@ -28,6 +28,8 @@ from torchrl_ftb.data.loaders import (
 )
 from torchrl_ftb.data.trajectories import (
     FORMAT_VERSION,
+    REWARD_KEY,
+    TERMINATED_KEY,
     atomic_directory,
     atomic_file,
     atomic_torch_save,
@@ -53,6 +55,8 @@ from torchrl_ftb.data.trajectories import (
 
 __all__ = [
     "FORMAT_VERSION",
+    "REWARD_KEY",
+    "TERMINATED_KEY",
     "LABELS_FORMAT_VERSION",
     "LOCOMOTION_NUM_LABELS",
     "METAWORLD_NUM_LABELS",

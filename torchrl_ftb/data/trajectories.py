@@ -35,6 +35,8 @@ __all__ = [
     "FORMAT_VERSION",
     "NPZ_READ_ERRORS",
     "REQUIRED_KEYS",
+    "REWARD_KEY",
+    "TERMINATED_KEY",
     "trajectory_lengths",
     "stop_rule_fill",
     "success_streak_length",
@@ -58,6 +60,8 @@ __all__ = [
 
 FORMAT_VERSION = 1
 REQUIRED_KEYS: tuple = ("observation", "action", "mask")
+REWARD_KEY = ("next", "reward")
+TERMINATED_KEY = ("next", "terminated")
 _BOOL_NEXT_KEYS = ("done", "terminated", "truncated", "success")
 
 

@@ -51,6 +51,7 @@ from tensordict import TensorDict, TensorDictBase
 from torch import nn
 from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
+from torchrl_ftb.data.trajectories import REWARD_KEY
 from torchrl_ftb.diffusion.backbones.base import DenoiserBackbone
 from torchrl_ftb.diffusion.condition import TrajectoryEncoder
 from torchrl_ftb.diffusion.normalizer import TrajectoryNormalizer
@@ -59,7 +60,6 @@ from torchrl_ftb.preference.score import NORMALIZED_SCORE_KEY
 
 __all__ = ["TrajectoryDiffuser", "REWARD_KEY"]
 
-REWARD_KEY = ("next", "reward")
 
 
 class TrajectoryDiffuser(nn.Module):

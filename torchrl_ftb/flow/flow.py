@@ -66,7 +66,7 @@ from torchrl.data.replay_buffers import RandomSampler
 from tqdm.auto import tqdm
 
 from torchrl_ftb.data import (
-    stop_rule_fill, success_streak_fired, success_streak_length, trajectories_to_flat, validate_trajectories,
+    REWARD_KEY, stop_rule_fill, success_streak_fired, success_streak_length, trajectories_to_flat, validate_trajectories,
 )
 from torchrl_ftb.diffusion.normalizer import TrajectoryNormalizer
 from torchrl_ftb.preference import (
@@ -80,7 +80,6 @@ __all__ = [
 ]
 
 TRAJ_KEYS = ("observation", "action", "mask")
-REWARD_KEY = ("next", "reward")
 
 
 def improves(new_hat: torch.Tensor, old_hat: torch.Tensor, threshold: float) -> torch.Tensor:
