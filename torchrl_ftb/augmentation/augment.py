@@ -339,14 +339,15 @@ def build_supplement(
     _check_options(dict(synthetic or {}), synthetic_supplement, "synthetic", reserved=(
         "normalizer", "min_length", "max_abs_z", "action_tolerance"))
     syn = {"num_samples": int(flow_opts.get("top_k", 100)), **dict(synthetic or {})}
-    # SYNTHETIC's validity rules are the flow's: its options belong to its cache key too (a changed limit re-filters)
-    validity = {"max_abs_z": float(flow_opts.get("max_abs_z", 30.0)),
-                "action_tolerance": float(flow_opts.get("action_tolerance", 0.5)),
-                "min_length": int(flow_opts.get("min_length") or default_min_length(trajs))}
     config = {"kind": kind, "dataset": _fingerprint(trajs), "preset": preset, "overrides": overrides,
               "settings": settings, "seed": int(seed)}
-    config.update({"flow": flow_opts, "num_blocks": int(num_blocks)} if kind == "ftb"
-                  else {"synthetic": syn, "validity": validity})
+    if kind == "ftb":
+        config.update(flow=flow_opts, num_blocks=int(num_blocks))
+    else:  # SYNTHETIC's validity rules are the flow's: they belong to its cache key too (a changed limit re-filters)
+        validity = {"max_abs_z": float(flow_opts.get("max_abs_z", 30.0)),
+                    "action_tolerance": float(flow_opts.get("action_tolerance", 0.5)),
+                    "min_length": int(flow_opts.get("min_length") or default_min_length(trajs))}
+        config.update(synthetic=syn, validity=validity)
     digest = hashlib.sha256(json.dumps(config, sort_keys=True, default=str).encode()).hexdigest()[:12]
     path = Path(cache_dir).expanduser() / f"{kind}-{digest}"
     path.mkdir(parents=True, exist_ok=True)
