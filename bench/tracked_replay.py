@@ -113,6 +113,9 @@ def main() -> None:
     args = runs_from_args(parser, summarize)
     if args is None:
         return
+    if args.readers < 1 or (args.readers > 1 and args.candidates < 2):  # before the tracker is fitted
+        parser.error(f"--readers {args.readers}: must be >= 1, and more than one reading needs shooting "
+                     f"(--candidates > 1)")
     measure_runs(args.run_dirs, args.out, {"horizon": args.horizon, "tracker_steps": args.tracker_steps,
                                            "seed": args.seed, "candidates": args.candidates, "noise": args.noise,
                                            "lookahead": args.lookahead, "readers": args.readers},

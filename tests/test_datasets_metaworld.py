@@ -463,6 +463,11 @@ def test_shooting_tracker_reproduces_recorded_paths_and_corrects_wrong_actions(t
     assert many["tracked_per_reader"][0] == pytest.approx(one["tracked"]) and len(many["tracked_per_reader"]) == 3
     assert many["fidelity"] == one["fidelity"] and many["shooting"]["readers"] == 3
     assert any(len(set(p)) > 1 for p in per)  # other perturbations, another reading
+    devs = [s["hand_deviation_per_reader"] for s in many["samples"]]
+    assert [s["hand_deviation"] for s in many["samples"]] == pytest.approx([sum(d) / 3 for d in devs])
+    # off path if any reading left it: at least the single reading's off-path samples
+    limit = many["fidelity"]["tracker_alone_hand_deviation_max"]
+    assert many["generated"]["off_path"] == sum(max(d) > limit for d in devs) >= one["generated"]["off_path"]
     with pytest.raises(ValueError, match="needs shooting"):
         tracked_improvement(shifted, original, generated, td, meta, task=task, horizon=150, tracker=tracker,
                             readers=2)

@@ -153,7 +153,8 @@ def tracked_improvement(
         from the recorded path), ``generated`` (count, median hand deviation, success rate, mean claimed and
         tracked return of the generated samples, how many are off path) and ``samples`` (per generated
         trajectory). With ``readers > 1`` the generated samples' numbers are means over the readings (a sample's
-        ``tracked_success`` is its success rate, ``tracked_stop_rule_per_reader`` its readings), and
+        ``tracked_success`` is its success rate, ``tracked_stop_rule_per_reader`` and
+        ``hand_deviation_per_reader`` its readings), a sample is off path if any reading left it, and
         ``tracked_per_reader`` holds each reading's own ``return_summary``.
 
     Example:
@@ -166,6 +167,7 @@ def tracked_improvement(
         raise ValueError(f"tracked_improvement: readers must be >= 1, and more than one reading needs shooting "
                          f"(candidates > 1; the tracker alone is deterministic), got readers={readers}, "
                          f"candidates={candidates}")
+    readers = int(readers)
     final, original, generated = checked_final_set("tracked_improvement", task, final, original, generated, meta)
     data_obs = data["observation"]
     rows = match_rows(original["observation"].float(), data_obs) if original_rows is None else original_rows.cpu()
@@ -178,7 +180,7 @@ def tracked_improvement(
     k = original.batch_size[0]
     bar = tqdm(total=len(jobs) + (readers - 1) * (len(jobs) - k), desc=f"{task} tracked replays", disable=not progress)
     readings = []  # per reading: (tracked return, success, hand deviation) of the paths it read
-    for reader in range(readers):
+    for reader in range(readers if len(jobs) > k else 1):  # nothing generated: one reading of the top-k
         part = slice(0 if reader == 0 else k, None)
         episodes = track_paths(task, jobs[part], paths[part], lengths[part], tracker, seed=int(meta["seed"]),
                                max_steps=int(meta["max_steps"]), on_episode=lambda: bar.update(1),
@@ -220,7 +222,8 @@ def tracked_improvement(
         fidelity.update(tracker_alone_tracked_mean=float(replay_returns(alone, horizon=horizon)[:, 1].mean()),
                         tracker_alone_hand_deviation_max=limit)
     off_path = torch.zeros(final.batch_size[0], dtype=torch.bool)
-    off_path[generated] = deviation[k:] > limit
+    # off path if any reading left it (a mean over the readings could hide the one whose return is the tracker's)
+    off_path[generated] = torch.stack([g[2] for g in generated_reads]).gt(limit).any(0)
     samples = [{"start_row": int(r), "length": int(n), "claimed_stop_rule": float(c), "tracked_stop_rule": float(t),
                 "tracked_success": bool(s) if readers == 1 else float(s), "hand_deviation": float(d)}
                for r, n, c, t, s, d in zip(start_row.tolist(), lengths[k:], claimed1[generated], tracked[k:],
@@ -229,6 +232,7 @@ def tracked_improvement(
     if readers > 1:
         for i, sample in enumerate(samples):
             sample["tracked_stop_rule_per_reader"] = [float(g[0][i]) for g in generated_reads]
+            sample["hand_deviation_per_reader"] = [float(g[2][i]) for g in generated_reads]
         for g in generated_reads:
             after_r = after.clone()
             after_r[generated] = g[0]

@@ -42,7 +42,8 @@ class DiffusionLoss(LossModule):
     ``"condition"`` and ``"target"`` ``[B, H]`` (``observation``, ``action``, ``mask`` and
     ``("next", "reward")`` when the model diffuses rewards; the condition's
     ``"normalized_score"`` with ``score_condition``). Also reports (detached, not
-    ``loss_``-prefixed) ``"diffusion_mse_data"`` and ``"diffusion_mse_validity"``.
+    ``loss_``-prefixed) ``"diffusion_mse_data"`` (valid steps, with or without ``padding_loss``) and
+    ``"diffusion_mse_validity"``.
 
     Args:
         diffuser: the :class:`TrajectoryDiffuser` to train.
@@ -119,11 +120,14 @@ class DiffusionLoss(LossModule):
             cond_emb, cond_mask = d.encode_condition(d.condition_input(craw, cmask), cmask, score=score, drop=drop)
         out = d.backbone(x_t, t, cond_emb, cond_mask)
         err = (out.float() - d.process.training_target(x0, noise, t)).pow(2)
-        supervised = torch.ones_like(mask) if d.padding_loss else mask
-        data_err = (err[..., :-1] * supervised[..., None]).sum()
+        data_err = (err[..., :-1] * mask[..., None]).sum()  # valid steps
         valid_err = err[..., -1].sum()
-        n_data = supervised.sum() * d.diffused_dim
-        loss = (data_err + valid_err) / (n_data + mask.numel())
+        n_data = mask.sum() * d.diffused_dim
+        if d.padding_loss:  # the data channels on padded steps too
+            pad_err, n_pad = (err[..., :-1] * ~mask[..., None]).sum(), (~mask).sum() * d.diffused_dim
+        else:
+            pad_err, n_pad = err.new_zeros(()), 0
+        loss = (data_err + pad_err + valid_err) / (n_data + n_pad + mask.numel())
         return TensorDict(
             {
                 "loss_diffusion": loss,

@@ -6,7 +6,7 @@ The diffused vector per step is ``[observation, action]`` (``+ [reward]`` with
 the prefix that best agrees with the sign of that channel (:meth:`detect_mask`, at least one step). We chose a learned channel
 over the authors' ``|obs|+|act| < 1`` heuristic (which breaks for any task whose raw values
 are small): its loss is computed on *every* step while the state/action (reward) loss is
-masked to valid steps, and padded target steps are set to 0 (in z-score space) before
+masked to valid steps (on every step with ``padding_loss``), and padded target steps are set to 0 (in z-score space) before
 noising so their raw values never reach the model.
 
 **Static dimensions** (``static_dims``): data dimensions that are constant over the dataset

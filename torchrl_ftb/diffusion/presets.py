@@ -34,8 +34,8 @@ Presets differ only in numbers:
   ``encoder_masked_norm=True`` normalises the encoder's convolutions over each condition's valid steps only
   (:class:`~torchrl_ftb.diffusion.TrajectoryEncoder` ``masked_norm``): by default a short trajectory padded to
   the horizon is normalised mostly by its padding.
-  ``padding_loss=True`` also supervises the data channels on padded steps (their target is the padding, 0 in
-  z-space; :class:`~torchrl_ftb.diffusion.DiffusionLoss`). By default only the validity channel is supervised there,
+  ``padding_loss=True`` also supervises the data channels on padded steps (their clean value is the padding, 0 in
+  z-space, and the regression target follows the prediction type; :class:`~torchrl_ftb.diffusion.DiffusionLoss`). By default only the validity channel is supervised there,
   so the denoiser's output on a generated trajectory's padding is unconstrained, while sampling runs every step and
   the convolutions carry it into the last valid steps.
   ``prediction_type="sample"`` trains the backbone to output the clean ``x_0`` instead of the
