@@ -29,7 +29,7 @@ sys.path.insert(0, str(ROOT / "bench"))
 from flow_generated import measure_runs, runs_from_args  # noqa: E402
 from open_loop import load_flow  # noqa: E402
 
-from torchrl_ftb.analysis import tracked_improvement  # noqa: E402
+from torchrl_ftb.analysis import check_readers, tracked_improvement  # noqa: E402
 from torchrl_ftb.policy import fit_path_tracker  # noqa: E402
 
 
@@ -113,9 +113,10 @@ def main() -> None:
     args = runs_from_args(parser, summarize)
     if args is None:
         return
-    if args.readers < 1 or (args.readers > 1 and args.candidates < 2):  # before the tracker is fitted
-        parser.error(f"--readers {args.readers}: must be >= 1, and more than one reading needs shooting "
-                     f"(--candidates > 1)")
+    try:  # before the tracker is fitted
+        check_readers(args.readers, args.candidates)
+    except ValueError as err:
+        parser.error(f"--readers {args.readers} with --candidates {args.candidates}: {err}")
     measure_runs(args.run_dirs, args.out, {"horizon": args.horizon, "tracker_steps": args.tracker_steps,
                                            "seed": args.seed, "candidates": args.candidates, "noise": args.noise,
                                            "lookahead": args.lookahead, "readers": args.readers},

@@ -46,6 +46,7 @@ from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDict, TensorDictBase
 
 from torchrl_ftb.analysis import (
+    check_readers,
     dynamics_error,
     fit_dynamics_reference,
     locomotion_open_loop_improvement,
@@ -659,10 +660,10 @@ def tracker_readers(cfg: DictConfig) -> int:
     generated path, each with other perturbations; the path's numbers are the means (>= 1; default 1;
     :func:`torchrl_ftb.analysis.tracked_improvement`). More than 1 needs shooting."""
     n = _tracker_count(cfg, "readers", 1)
-    if n > 1 and tracker_candidates(cfg) < 2:
-        raise ValueError(f"tracker.readers={n}: more than one reading needs shooting (tracker.candidates > 1); the "
-                         f"inverse-dynamics tracker alone reads a path the same every time")
-    return n
+    try:
+        return check_readers(n, tracker_candidates(cfg))
+    except ValueError as err:
+        raise ValueError(f"tracker.readers={n}: {err}; set tracker.candidates") from None
 
 
 def path_tracker(cfg: DictConfig, run: RunDir, trajs: TensorDictBase, *, progress: bool) -> PathTracker:

@@ -23,6 +23,7 @@ from torchrl_ftb.analysis.replay import (
 )
 from torchrl_ftb.analysis.tracking import (
     TrackedTopK,
+    check_readers,
     locomotion_tracked_improvement,
     locomotion_tracked_returns,
     observation_scale,
@@ -33,6 +34,7 @@ from torchrl_ftb.analysis.tracking import (
 
 __all__ = [
     "TrackedTopK",
+    "check_readers",
     "dynamics_error",
     "ended_early",
     "episode_jobs",

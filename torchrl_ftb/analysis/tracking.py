@@ -93,6 +93,18 @@ def track_paths(task: str, jobs: list[tuple[int, int]], paths: torch.Tensor, len
                                        on_episode=on_episode, controllers=controllers)
 
 
+def check_readers(readers: int, candidates: int) -> int:
+    """``readers`` as an int, checked against ``candidates`` (:func:`tracked_improvement`): >= 1, and more than one
+    reading needs shooting (``candidates > 1``; the tracker alone reads a path the same every time). A
+    ``ValueError`` otherwise; callers prefix the option names they take."""
+    if readers < 1:
+        raise ValueError(f"readers={readers}: must be >= 1")
+    if readers > 1 and candidates < 2:
+        raise ValueError(f"more than one reading needs shooting (candidates={candidates}, need > 1; the tracker "
+                         f"alone reads a path the same every time)")
+    return int(readers)
+
+
 def _hand_deviation(episodes: list[dict], paths: torch.Tensor, lengths: list[int]) -> list[float]:
     """Mean distance (m) between the tracked hand and the path's, over the steps both have."""
     out = []
@@ -163,11 +175,10 @@ def tracked_improvement(
         ...                           task="drawer-open-v3", horizon=500, tracker=tracker)  # doctest: +SKIP
         >>> out["tracked"]["true_return_mean_after"]  # doctest: +SKIP
     """
-    if readers < 1 or (readers > 1 and candidates < 2):
-        raise ValueError(f"tracked_improvement: readers must be >= 1, and more than one reading needs shooting "
-                         f"(candidates > 1; the tracker alone is deterministic), got readers={readers}, "
-                         f"candidates={candidates}")
-    readers = int(readers)
+    try:
+        readers = check_readers(readers, candidates)
+    except ValueError as err:
+        raise ValueError(f"tracked_improvement: {err}") from None
     final, original, generated = checked_final_set("tracked_improvement", task, final, original, generated, meta)
     data_obs = data["observation"]
     rows = match_rows(original["observation"].float(), data_obs) if original_rows is None else original_rows.cpu()
