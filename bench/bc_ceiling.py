@@ -96,7 +96,7 @@ def run_cell(task: str, idx: torch.Tensor, seed: int, cfg, data: tuple, *, episo
     eval_env = functools.partial(make_env, task, seed=int(cfg.eval.seed), max_episode_steps=int(cfg.env.max_episode_steps))
     t0 = time.perf_counter()
     ev = evaluate_policy(eval_env, actor, num_episodes=episodes, seed=int(cfg.eval.seed),
-                         max_steps=None if cfg.eval.max_steps is None else int(cfg.eval.max_steps),
+                         max_steps=cfg.eval.max_steps,
                          stop_on_success=True)
     counts = torch.bincount(group[idx], minlength=len(meta["groups"])).tolist()
     succ = [int(success[idx][group[idx] == i].sum()) for i in range(len(meta["groups"]))]

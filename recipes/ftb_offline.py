@@ -581,11 +581,6 @@ def check_policy_options(cfg: DictConfig) -> None:
     for section, check, keys in (("bc", check_bc_options, ("steps", "batch_size", "lr", "weight_decay")),
                                  ("eval", check_evaluation_options, ("num_episodes", "num_envs", "max_steps"))):
         values = {key: OmegaConf.select(cfg, f"{section}.{key}") for key in keys}
-        for key, value in values.items():
-            if value is None and (section, key) == ("eval", "max_steps"):  # the env's own time limit
-                continue
-            if isinstance(value, bool) or not isinstance(value, (int, float)):
-                raise ValueError(f"{section}.{key}={value!r}: must be a number")
         try:
             check(**values)
         except ValueError as err:
@@ -1166,7 +1161,7 @@ def run(cfg: DictConfig) -> dict:
     # 8. evaluation ---------------------------------------------------------------------
     t0 = time.perf_counter()
     ev = evaluate_policy(eval_env, actor, num_episodes=int(cfg.eval.num_episodes), seed=int(cfg.eval.seed),
-                         max_steps=_optional_int(cfg.eval.max_steps), num_envs=int(cfg.eval.num_envs),
+                         max_steps=cfg.eval.max_steps, num_envs=int(cfg.eval.num_envs),
                          stop_on_success=bool(cfg.eval.stop_on_success) and kind == "metaworld",
                          normalized_score_fn=normalized_score_fn(cfg.env.name), progress=progress)
     run_dir.mark("eval", **ev)

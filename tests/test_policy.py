@@ -139,7 +139,9 @@ def test_bc_rejects_bad_transitions():
 @pytest.mark.parametrize("kwargs, message", [({"steps": -1}, "steps must be >= 0"),
                                              ({"batch_size": 0}, "batch_size must be >= 1"),
                                              ({"lr": 0.0}, "lr must be > 0"),
-                                             ({"weight_decay": -1e-3}, "weight_decay must be >= 0")])
+                                             ({"weight_decay": -1e-3}, "weight_decay must be >= 0"),
+                                             ({"steps": "many"}, "steps must be a number, got 'many'"),
+                                             ({"lr": None}, "lr must be a number, got None")])
 def test_bc_refuses_bad_numbers_before_touching_data(kwargs, message):
     actor = make_bc_actor(3, 2, hidden=(4,))
     before = [p.clone() for p in actor.parameters()]
@@ -156,6 +158,8 @@ def test_evaluate_refuses_bad_numbers_before_building_an_env(name):
 
     with pytest.raises(ValueError, match=f"evaluate_policy: {name} must be >= 1, got 0"):
         evaluate_policy(no_env, make_bc_actor(3, 2, hidden=(4,)), **{name: 0})
+    with pytest.raises(ValueError, match=f"evaluate_policy: {name} must be a number, got 'ten'"):
+        evaluate_policy(no_env, make_bc_actor(3, 2, hidden=(4,)), **{name: "ten"})
 
 
 def test_evaluate_without_max_steps_runs_each_episode_to_the_env_s_own_end():
@@ -165,3 +169,6 @@ def test_evaluate_without_max_steps_runs_each_episode_to_the_env_s_own_end():
     own = evaluate_policy(lambda: ToyLineEnv(max_steps=37), actor, num_episodes=2, seed=0, max_steps=None)
     capped = evaluate_policy(lambda: ToyLineEnv(max_steps=37), actor, num_episodes=2, seed=0, max_steps=10)
     assert own["length_mean"] == 37 and capped["length_mean"] == 10
+    # a config's float limit is a step count (the recipes pass ``eval.max_steps`` as they read it)
+    assert evaluate_policy(lambda: ToyLineEnv(max_steps=37), actor, num_episodes=2, seed=0,
+                           max_steps=10.0)["length_mean"] == 10

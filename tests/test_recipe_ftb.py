@@ -230,7 +230,7 @@ def test_bad_config_is_a_clear_error(tmp_path):
                               ("flow.ensemble_rule=all", "needs a ScoreModel ensemble"),
                               ("bc.batch_size=0", r"bc.\*: train_bc: batch_size must be >= 1, got 0"),
                               ("bc.lr=0", "train_bc: lr must be > 0"),
-                              ("bc.steps=many", "bc.steps='many': must be a number"),
+                              ("bc.steps=many", r"bc.\*: train_bc: steps must be a number, got 'many'"),
                               ("eval.num_episodes=0", r"eval.\*: evaluate_policy: num_episodes must be >= 1"),
                               ("eval.max_steps=0", r"eval.\*: evaluate_policy: max_steps must be >= 1"),
                               ("diffuser.pair_neighbours=0", "diffuser.pair_neighbours=0: must be null or an integer"),

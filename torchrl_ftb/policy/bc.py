@@ -92,6 +92,20 @@ def load_bc_checkpoint(path: str | os.PathLike, actor: TensorDictModule) -> dict
     return ckpt
 
 
+def check_number(owner: str, name: str, value) -> None:
+    """Refuse a non-number (a string, a bool, ``None``) before a range check would raise a bare ``TypeError``.
+
+    Example:
+        >>> check_number("train_bc", "steps", 100)
+        >>> check_number("train_bc", "steps", "many")
+        Traceback (most recent call last):
+        ...
+        ValueError: train_bc: steps must be a number, got 'many'
+    """
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ValueError(f"{owner}: {name} must be a number, got {value!r}")
+
+
 def check_bc_options(*, steps: int, batch_size: int = 1024, lr: float = 1e-4, weight_decay: float = 1e-3) -> None:
     """Check :func:`train_bc`'s numbers (same names and defaults) without training.
 
@@ -108,6 +122,8 @@ def check_bc_options(*, steps: int, batch_size: int = 1024, lr: float = 1e-4, we
         ...
         ValueError: train_bc: lr must be > 0, got 0.0
     """
+    for name, value in (("steps", steps), ("batch_size", batch_size), ("lr", lr), ("weight_decay", weight_decay)):
+        check_number("train_bc", name, value)
     if steps < 0:
         raise ValueError(f"train_bc: steps must be >= 0, got {steps}")
     if batch_size < 1:

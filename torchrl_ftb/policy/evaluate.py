@@ -27,6 +27,8 @@ from torchrl.envs.transforms import TerminateTransform
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from tqdm.auto import tqdm
 
+from torchrl_ftb.policy.bc import check_number
+
 __all__ = ["evaluate_policy", "episode_statistics"]
 
 
@@ -78,6 +80,7 @@ def check_evaluation_options(*, num_episodes: int = 10, num_envs: int = 1, max_s
     for name, value in (("num_episodes", num_episodes), ("num_envs", num_envs), ("max_steps", max_steps)):
         if value is None and name == "max_steps":  # the env's own time limit
             continue
+        check_number("evaluate_policy", name, value)
         if value < 1:
             raise ValueError(f"evaluate_policy: {name} must be >= 1, got {value}")
 
@@ -120,6 +123,7 @@ def evaluate_policy(
             without a ``success`` entry.
     """
     check_evaluation_options(num_episodes=num_episodes, num_envs=num_envs, max_steps=max_steps)
+    max_steps = None if max_steps is None else int(max_steps)  # a config's 500.0 is 500 steps
     num_envs = min(num_envs, num_episodes)
     env = make_env() if num_envs == 1 else SerialEnv(num_envs, make_env)
     if stop_on_success:
