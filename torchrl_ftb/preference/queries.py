@@ -224,15 +224,15 @@ def make_query_labels(
     return labels
 
 
-def _provisional_scores(pool: TensorDictBase, labels: TensorDictBase, *, members: int, seed: int, steps: int,
+def _provisional_scores(trajs: TensorDictBase, labels: TensorDictBase, *, members: int, seed: int, steps: int,
                         lr: float, model_kwargs: Mapping[str, Any] | None, normalize_observations: bool,
                         device: torch.device | str | None) -> torch.Tensor:
     """``[C, N]`` member scores of a score model fitted to ``labels`` (one active round)."""
-    model = ScoreModel(pool["observation"].shape[-1], pool["action"].shape[-1], num_members=members, seed=seed,
+    model = ScoreModel(trajs["observation"].shape[-1], trajs["action"].shape[-1], num_members=members, seed=seed,
                        device=device, **{k: v for k, v in (model_kwargs or {}).items() if v is not None})
     if normalize_observations:
-        model.fit_normalizer(pool)
+        model.fit_normalizer(trajs)
     train_score_model(model, labels.select("tau0", "tau1", "label"), steps=steps, lr=lr, eval_fraction=0.0,
                       seed=seed, progress=False, device=device)
     # what the model reads (its stop-rule fill's termination flag too, where present), nothing else
-    return score_trajectories(model, pool.select(*model.read_keys, strict=False), members=True).cpu()
+    return score_trajectories(model, trajs.select(*model.read_keys, strict=False), members=True).cpu()
