@@ -17,6 +17,7 @@ Example:
 """
 from __future__ import annotations
 
+import numbers
 import os
 import warnings
 from pathlib import Path
@@ -102,7 +103,7 @@ def check_number(owner: str, name: str, value) -> None:
         ...
         ValueError: train_bc: steps must be a number, got 'many'
     """
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):  # numpy's numbers too
         raise ValueError(f"{owner}: {name} must be a number, got {value!r}")
 
 
