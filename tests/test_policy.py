@@ -141,7 +141,8 @@ def test_bc_rejects_bad_transitions():
                                              ({"lr": 0.0}, "lr must be > 0"),
                                              ({"weight_decay": -1e-3}, "weight_decay must be >= 0"),
                                              ({"steps": "many"}, "steps must be a number, got 'many'"),
-                                             ({"lr": None}, "lr must be a number, got None")])
+                                             ({"lr": None}, "lr must be a number, got None"),
+                                             ({"batch_size": 8.5}, "batch_size must be a whole number, got 8.5")])
 def test_bc_refuses_bad_numbers_before_touching_data(kwargs, message):
     actor = make_bc_actor(3, 2, hidden=(4,))
     before = [p.clone() for p in actor.parameters()]
@@ -160,6 +161,8 @@ def test_evaluate_refuses_bad_numbers_before_building_an_env(name):
         evaluate_policy(no_env, make_bc_actor(3, 2, hidden=(4,)), **{name: 0})
     with pytest.raises(ValueError, match=f"evaluate_policy: {name} must be a number, got 'ten'"):
         evaluate_policy(no_env, make_bc_actor(3, 2, hidden=(4,)), **{name: "ten"})
+    with pytest.raises(ValueError, match=f"evaluate_policy: {name} must be a whole number, got 10.5"):
+        evaluate_policy(no_env, make_bc_actor(3, 2, hidden=(4,)), **{name: 10.5})
 
 
 def test_evaluate_without_max_steps_runs_each_episode_to_the_env_s_own_end():

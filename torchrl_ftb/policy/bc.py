@@ -93,11 +93,12 @@ def load_bc_checkpoint(path: str | os.PathLike, actor: TensorDictModule) -> dict
     return ckpt
 
 
-def check_number(owner: str, name: str, value) -> None:
-    """Refuse a non-number (a string, a bool, ``None``) before a range check would raise a bare ``TypeError``.
+def check_number(owner: str, name: str, value, *, whole: bool = False) -> None:
+    """Refuse a non-number (a string, a bool, ``None``) before a range check would raise a bare ``TypeError``;
+    with ``whole``, a count that is not a whole number (``500.0`` is 500, ``10.5`` is refused, not cut to 10).
 
     Example:
-        >>> check_number("train_bc", "steps", 100)
+        >>> check_number("train_bc", "steps", 100.0, whole=True)
         >>> check_number("train_bc", "steps", "many")
         Traceback (most recent call last):
         ...
@@ -105,6 +106,8 @@ def check_number(owner: str, name: str, value) -> None:
     """
     if isinstance(value, bool) or not isinstance(value, numbers.Real):  # numpy's numbers too
         raise ValueError(f"{owner}: {name} must be a number, got {value!r}")
+    if whole and value != int(value):
+        raise ValueError(f"{owner}: {name} must be a whole number, got {value!r}")
 
 
 def check_bc_options(*, steps: int, batch_size: int = 1024, lr: float = 1e-4, weight_decay: float = 1e-3) -> None:
@@ -124,7 +127,7 @@ def check_bc_options(*, steps: int, batch_size: int = 1024, lr: float = 1e-4, we
         ValueError: train_bc: lr must be > 0, got 0.0
     """
     for name, value in (("steps", steps), ("batch_size", batch_size), ("lr", lr), ("weight_decay", weight_decay)):
-        check_number("train_bc", name, value)
+        check_number("train_bc", name, value, whole=name in ("steps", "batch_size"))
     if steps < 0:
         raise ValueError(f"train_bc: steps must be >= 0, got {steps}")
     if batch_size < 1:
@@ -184,6 +187,7 @@ def train_bc(
             the actor.
     """
     check_bc_options(steps=steps, batch_size=batch_size, lr=lr, weight_decay=weight_decay)
+    steps, batch_size = int(steps), int(batch_size)  # whole numbers (checked); a config's 100.0 is 100
     torch.manual_seed(int(seed))
     if device is None:
         device = next(actor.parameters()).device

@@ -80,7 +80,7 @@ def check_evaluation_options(*, num_episodes: int = 10, num_envs: int = 1, max_s
     for name, value in (("num_episodes", num_episodes), ("num_envs", num_envs), ("max_steps", max_steps)):
         if value is None and name == "max_steps":  # the env's own time limit
             continue
-        check_number("evaluate_policy", name, value)
+        check_number("evaluate_policy", name, value, whole=True)
         if value < 1:
             raise ValueError(f"evaluate_policy: {name} must be >= 1, got {value}")
 
