@@ -39,7 +39,7 @@ from torchrl_ftb.data.labels import make_scripted_labels, make_teacher, true_ret
 from torchrl_ftb.preference import QUERY_STRATEGIES, make_query_labels
 from torchrl_ftb.datasets import dataset_kwargs, make_dataset
 from torchrl_ftb.envs import check_env_matches, dynamics_oracle, env_kind, make_env, normalized_score_fn, true_reward_fn
-from torchrl_ftb.policy import evaluate_policy
+from torchrl_ftb.policy import check_policy_sections, evaluate_policy
 from torchrl_ftb.provenance import git_commit, machine_info, make_logger
 
 PRESETS = ("cpu", "paper")
@@ -101,6 +101,8 @@ def check_config(cfg: DictConfig) -> None:
     if env_kind(cfg.env.name) != "locomotion" and cfg.augmentation.get("tracked", False):  # env_kind: a known env
         raise ValueError(f"augmentation.tracked=true with env.name={cfg.env.name!r}: the tracked reading needs a "
                          "locomotion env (its simulator state is rebuilt from an observation)")
+    # BC's (the BC methods') and the evaluation's numbers, before any data or training
+    check_policy_sections({"bc": cfg.bc, "eval": cfg.eval} if str(cfg.method).startswith("bc") else {"eval": cfg.eval})
 
 
 def supplement_readings(cfg: DictConfig, trajs) -> dict[str, Any]:

@@ -89,8 +89,7 @@ from torchrl_ftb.envs import (
 from torchrl_ftb.flow import FlowToBetter, check_flow_options, true_return_score
 from torchrl_ftb.policy import (
     PathTracker,
-    check_bc_options,
-    check_evaluation_options,
+    check_policy_sections,
     evaluate_policy,
     fit_path_tracker,
     load_bc_checkpoint,
@@ -577,14 +576,8 @@ def flow_options(cfg: DictConfig) -> dict[str, Any]:
 
 def check_policy_options(cfg: DictConfig) -> None:
     """BC's and the evaluation's numbers, checked at start (they are used after the diffuser's training) by the
-    library's own checks (:func:`check_bc_options`, :func:`check_evaluation_options`)."""
-    for section, check, keys in (("bc", check_bc_options, ("steps", "batch_size", "lr", "weight_decay")),
-                                 ("eval", check_evaluation_options, ("num_episodes", "num_envs", "max_steps"))):
-        values = {key: OmegaConf.select(cfg, f"{section}.{key}") for key in keys}
-        try:
-            check(**values)
-        except ValueError as err:
-            raise ValueError(f"{section}.*: {err}") from None
+    library's own checks (:func:`check_policy_sections`)."""
+    check_policy_sections({"bc": cfg.bc, "eval": cfg.eval})
 
 
 def stage_flow(cfg, run: RunDir, trajs, scores, block_ids, sampler, model, true_reward_fn, logger) -> dict:

@@ -174,6 +174,20 @@ def test_recipe_runs_resumes_and_checkpoint_loads(tmp_path):
     with initialize_config_dir(config_dir=str(ROOT / "recipes" / "config"), version_base="1.3"):
         cfg = compose(config_name="baselines", overrides=overrides + [f"run_dir={tmp_path}"])
         bad = compose(config_name="baselines", overrides=overrides + ["method=cql", f"run_dir={tmp_path / 'bad'}"])
+        # BC's and the evaluation's numbers are refused before any data or training (bc.* only for BC methods)
+        bad_numbers = {override: compose(config_name="baselines",
+                                         overrides=overrides + [override, f"run_dir={tmp_path / 'numbers'}"])
+                       for override in ("bc.lr=0", "bc.steps=2.5", "eval.num_episodes=0", "eval.max_steps=ten")}
+        iql_bad_bc = compose(config_name="baselines", overrides=overrides + ["method=iql", "bc.lr=0", "iql.steps=0",
+                                                                             f"run_dir={tmp_path / 'iql'}"])
+    for override, message in (("bc.lr=0", r"bc.\*: train_bc: lr must be > 0"),
+                              ("bc.steps=2.5", r"bc.\*: train_bc: steps must be a whole number, got 2.5"),
+                              ("eval.num_episodes=0", r"eval.\*: evaluate_policy: num_episodes must be >= 1"),
+                              ("eval.max_steps=ten", r"eval.\*: evaluate_policy: max_steps must be a number")):
+        with pytest.raises(ValueError, match=message):
+            recipe.run(bad_numbers[override])
+    assert not (tmp_path / "numbers").exists()  # refused before anything is written
+    recipe.check_config(iql_bad_bc)  # IQL does not read bc.*
     metrics = recipe.run(cfg)
     saved = json.loads((tmp_path / "metrics.json").read_text())
     assert saved["score"] == metrics["score"] and saved["uses_labels"] and saved["labels"]["num_pairs"] == 6

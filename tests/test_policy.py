@@ -161,8 +161,9 @@ def test_evaluate_refuses_bad_numbers_before_building_an_env(name):
         evaluate_policy(no_env, make_bc_actor(3, 2, hidden=(4,)), **{name: 0})
     with pytest.raises(ValueError, match=f"evaluate_policy: {name} must be a number, got 'ten'"):
         evaluate_policy(no_env, make_bc_actor(3, 2, hidden=(4,)), **{name: "ten"})
-    with pytest.raises(ValueError, match=f"evaluate_policy: {name} must be a whole number, got 10.5"):
-        evaluate_policy(no_env, make_bc_actor(3, 2, hidden=(4,)), **{name: 10.5})
+    for value in (10.5, float("inf"), float("nan")):
+        with pytest.raises(ValueError, match=f"evaluate_policy: {name} must be a whole number, got {value}"):
+            evaluate_policy(no_env, make_bc_actor(3, 2, hidden=(4,)), **{name: value})
 
 
 def test_evaluate_without_max_steps_runs_each_episode_to_the_env_s_own_end():
@@ -172,6 +173,7 @@ def test_evaluate_without_max_steps_runs_each_episode_to_the_env_s_own_end():
     own = evaluate_policy(lambda: ToyLineEnv(max_steps=37), actor, num_episodes=2, seed=0, max_steps=None)
     capped = evaluate_policy(lambda: ToyLineEnv(max_steps=37), actor, num_episodes=2, seed=0, max_steps=10)
     assert own["length_mean"] == 37 and capped["length_mean"] == 10
-    # a config's float limit is a step count (the recipes pass ``eval.max_steps`` as they read it)
-    assert evaluate_policy(lambda: ToyLineEnv(max_steps=37), actor, num_episodes=2, seed=0,
-                           max_steps=10.0)["length_mean"] == 10
+    # a config's whole floats are counts (the recipes pass ``eval.max_steps`` as they read it)
+    floats = evaluate_policy(lambda: ToyLineEnv(max_steps=37), actor, num_episodes=2.0, num_envs=2.0, seed=0,
+                             max_steps=10.0)
+    assert floats["length_mean"] == 10 and floats["num_episodes"] == 2

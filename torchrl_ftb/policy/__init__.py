@@ -7,7 +7,7 @@ from torchrl_ftb.policy.actor import (
     observation_statistics,
 )
 from torchrl_ftb.policy.bc import check_bc_options, load_bc_checkpoint, make_transition_buffer, train_bc
-from torchrl_ftb.policy.evaluate import check_evaluation_options, episode_statistics, evaluate_policy
+from torchrl_ftb.policy.evaluate import check_evaluation_options, check_policy_sections, episode_statistics, evaluate_policy
 from torchrl_ftb.policy.inverse_dynamics import TRACKED_DIMS, PathTracker, fit_path_tracker
 
 __all__ = [
@@ -17,6 +17,7 @@ __all__ = [
     "SquashedMLP",
     "check_bc_options",
     "check_evaluation_options",
+    "check_policy_sections",
     "episode_statistics",
     "evaluate_policy",
     "fit_path_tracker",

@@ -106,7 +106,7 @@ def check_number(owner: str, name: str, value, *, whole: bool = False) -> None:
     """
     if isinstance(value, bool) or not isinstance(value, numbers.Real):  # numpy's numbers too
         raise ValueError(f"{owner}: {name} must be a number, got {value!r}")
-    if whole and value != int(value):
+    if whole and not float(value).is_integer():  # inf and nan too
         raise ValueError(f"{owner}: {name} must be a whole number, got {value!r}")
 
 

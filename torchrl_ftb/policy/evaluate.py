@@ -17,7 +17,7 @@ Example:
 from __future__ import annotations
 
 import math
-from typing import Any, Callable
+from typing import Any, Callable, Mapping
 
 import torch
 from tensordict import TensorDictBase
@@ -27,7 +27,7 @@ from torchrl.envs.transforms import TerminateTransform
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from tqdm.auto import tqdm
 
-from torchrl_ftb.policy.bc import check_number
+from torchrl_ftb.policy.bc import check_bc_options, check_number
 
 __all__ = ["evaluate_policy", "episode_statistics"]
 
@@ -85,6 +85,32 @@ def check_evaluation_options(*, num_episodes: int = 10, num_envs: int = 1, max_s
             raise ValueError(f"evaluate_policy: {name} must be >= 1, got {value}")
 
 
+def check_policy_sections(sections: Mapping[str, Mapping[str, Any] | None]) -> None:
+    """A recipe's ``bc`` and ``eval`` config sections checked at start by :func:`check_bc_options` and
+    :func:`check_evaluation_options`, each error prefixed with its section (``"bc.*: train_bc: lr must be > 0"``).
+
+    Args:
+        sections: ``{"bc": ..., "eval": ...}`` (either may be left out): each a mapping holding at least the
+            check's options (other keys, e.g. ``hidden`` or ``seed``, are ignored).
+
+    Example:
+        >>> check_policy_sections({"bc": {"steps": 100, "batch_size": 64, "lr": 1e-4, "weight_decay": 0.0},
+        ...                        "eval": {"num_episodes": 10, "num_envs": 1, "max_steps": None, "seed": 0}})
+        >>> check_policy_sections({"eval": {"num_episodes": 2.5, "num_envs": 1, "max_steps": 500}})
+        Traceback (most recent call last):
+        ...
+        ValueError: eval.*: evaluate_policy: num_episodes must be a whole number, got 2.5
+    """
+    checks = {"bc": (check_bc_options, ("steps", "batch_size", "lr", "weight_decay")),
+              "eval": (check_evaluation_options, ("num_episodes", "num_envs", "max_steps"))}
+    for section, values in sections.items():
+        check, keys = checks[section]
+        try:
+            check(**{key: values.get(key) for key in keys})
+        except ValueError as err:
+            raise ValueError(f"{section}.*: {err}") from None
+
+
 def evaluate_policy(
     make_env: Callable[[], EnvBase],
     actor: TensorDictModule,
@@ -123,7 +149,9 @@ def evaluate_policy(
             without a ``success`` entry.
     """
     check_evaluation_options(num_episodes=num_episodes, num_envs=num_envs, max_steps=max_steps)
-    max_steps = None if max_steps is None else int(max_steps)  # a config's 500.0 is 500 steps
+    # whole numbers (checked); a config's 500.0 is 500
+    num_episodes, num_envs = int(num_episodes), int(num_envs)
+    max_steps = None if max_steps is None else int(max_steps)
     num_envs = min(num_envs, num_episodes)
     env = make_env() if num_envs == 1 else SerialEnv(num_envs, make_env)
     if stop_on_success:
