@@ -16,6 +16,7 @@ Example:
 """
 from __future__ import annotations
 
+import inspect
 import math
 from typing import Any, Callable, Mapping
 
@@ -101,12 +102,11 @@ def check_policy_sections(sections: Mapping[str, Mapping[str, Any] | None]) -> N
         ...
         ValueError: eval.*: evaluate_policy: num_episodes must be a whole number, got 2.5
     """
-    checks = {"bc": (check_bc_options, ("steps", "batch_size", "lr", "weight_decay")),
-              "eval": (check_evaluation_options, ("num_episodes", "num_envs", "max_steps"))}
+    checks = {"bc": check_bc_options, "eval": check_evaluation_options}
     for section, values in sections.items():
-        check, keys = checks[section]
-        try:
-            check(**{key: values.get(key) for key in keys})
+        check = checks[section]
+        try:  # the options are the check's own keyword arguments
+            check(**{key: values.get(key) for key in inspect.signature(check).parameters})
         except ValueError as err:
             raise ValueError(f"{section}.*: {err}") from None
 
