@@ -230,9 +230,9 @@ def run(cfg: DictConfig) -> dict[str, Any]:
 
     ev = evaluate_policy(  # exactly FTB's evaluation: same env seed, episodes, stop rule
         eval_env, result.actor,
-        num_episodes=int(cfg.eval.num_episodes), seed=int(cfg.eval.seed),
+        num_episodes=cfg.eval.num_episodes, seed=int(cfg.eval.seed),
         max_steps=cfg.eval.max_steps,
-        num_envs=int(cfg.eval.num_envs),
+        num_envs=cfg.eval.num_envs,
         stop_on_success=bool(cfg.eval.stop_on_success) and kind == "metaworld",
         normalized_score_fn=normalized_score_fn(cfg.env.name), progress=bool(cfg.progress),
     )

@@ -1153,8 +1153,8 @@ def run(cfg: DictConfig) -> dict:
 
     # 8. evaluation ---------------------------------------------------------------------
     t0 = time.perf_counter()
-    ev = evaluate_policy(eval_env, actor, num_episodes=int(cfg.eval.num_episodes), seed=int(cfg.eval.seed),
-                         max_steps=cfg.eval.max_steps, num_envs=int(cfg.eval.num_envs),
+    ev = evaluate_policy(eval_env, actor, num_episodes=cfg.eval.num_episodes, seed=int(cfg.eval.seed),
+                         max_steps=cfg.eval.max_steps, num_envs=cfg.eval.num_envs,
                          stop_on_success=bool(cfg.eval.stop_on_success) and kind == "metaworld",
                          normalized_score_fn=normalized_score_fn(cfg.env.name), progress=progress)
     run_dir.mark("eval", **ev)
