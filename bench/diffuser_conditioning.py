@@ -68,7 +68,7 @@ from torchrl_ftb.diffusion import (  # noqa: E402
 )
 from torchrl_ftb.envs import observation_layout, true_reward_fn  # noqa: E402
 from torchrl_ftb.preference import (  # noqa: E402
-    load_score_model, make_block_pair_buffer, score_trajectories, with_normalized_scores,
+    load_score_model, make_block_pair_buffer, score_objective, score_trajectories, with_normalized_scores,
 )
 from torchrl_ftb.provenance import run_record, write_json  # noqa: E402
 
@@ -76,14 +76,15 @@ from torchrl_ftb.provenance import run_record, write_json  # noqa: E402
 def evaluate(diffuser, model, trajs, scores, ids, *, per_block: int, sampler: str, steps: int, guidance: float,
              seed: int, returns: torch.Tensor | None = None, reward_fn=None, autocast_bf16: bool = False,
              top_block: bool = False, horizon: int | None = None, streak: int | None = None,
-             stride: int = 1, strength: float = 1.0, inpaint_start: bool = False) -> dict:
+             stride: int = 1, strength: float = 1.0, inpaint_start: bool = False, score_guidance: float = 0.0) -> dict:
     """Condition-following statistics of one model state (see module docstring).
 
     ``top_block=True`` also conditions on the top block, which Eq. 5's pairs never use as a condition
     (no block above it; ``diffuser.top_block_pairs`` pairs it with itself): the flow's top-k come from there.
     Its entry has no target block (None); the correlations are over the other blocks' conditions, as without it. ``strength < 1`` samples SDEdit
     edits of each condition and ``inpaint_start`` holds each sample's first observation at its condition's,
-    as the recipe's ``diffuser.strength`` / ``diffuser.inpaint_start`` do in the flow.
+    as the recipe's ``diffuser.strength`` / ``diffuser.inpaint_start`` do in the flow; ``score_guidance`` pushes
+    the samples up ``model``'s normalised score as the recipe's ``diffuser.score_guidance`` does.
     """
     gen = torch.Generator().manual_seed(seed)
     num_blocks = int(ids.max()) + 1
@@ -102,7 +103,9 @@ def evaluate(diffuser, model, trajs, scores, ids, *, per_block: int, sampler: st
     edit = strength < 1.0 or inpaint_start  # the flow's options: the condition is also the init
     sample = diffuser.generate(cond, sampler=sampler, steps=steps, guidance=guidance, generator=gen,
                                autocast_bf16=autocast_bf16, init=cond if edit else None, strength=strength,
-                               inpaint_start=inpaint_start).to("cpu")
+                               inpaint_start=inpaint_start, guide_scale=score_guidance,
+                               guide=score_objective(model, float(scores.min()), float(scores.max()))
+                               if score_guidance else None).to("cpu")
     gap = trajectory_gaps_to_conditions(diffuser, sample, cond.to("cpu"))
     round_trip = None
     if stride > 1:
@@ -123,6 +126,7 @@ def evaluate(diffuser, model, trajs, scores, ids, *, per_block: int, sampler: st
         has_target = bool(target.any())
         per[str(k + 1)] = {"condition_score": float(scores[idx[m]].mean()), "sample_score": float(s_new[m].mean()),
                            "target_block_score": float(scores[target].mean()) if has_target else None,
+                           "condition_score_max": float(scores[idx[m]].max()), "sample_score_max": float(s_new[m].max()),
                            "sample_length": float(length[m].mean()),
                            "target_block_length": float(trajs["mask"][target].sum(-1).double().mean())
                            if has_target else None}
@@ -289,6 +293,9 @@ def main() -> None:
     parser.add_argument("--guidance", type=float, default=None)
     parser.add_argument("--strength", type=float, default=1.0,
                         help="< 1: sample SDEdit edits of each condition (the recipe's diffuser.strength)")
+    parser.add_argument("--score-guidance", type=float, default=0.0,
+                        help="lambda of the recipe's diffuser.score_guidance: each sampler step also climbs the run's "
+                             "s_psi (dataset-normalised); 0: none")
     parser.add_argument("--inpaint-start", action="store_true",
                         help="hold each sample's first observation at its condition's (diffuser.inpaint_start)")
     parser.add_argument("--work-dir", type=Path, default=None,
@@ -328,6 +335,8 @@ def main() -> None:
         parser.error("--plot goes with --summarize FILES (it plots saved results)")
     if args.steps is None:
         parser.error("--steps is required with --run-dir")
+    if not args.score_guidance >= 0.0:
+        parser.error(f"--score-guidance must be >= 0, got {args.score_guidance}")
     if not 0.0 < args.strength <= 1.0:
         parser.error(f"--strength must be in (0, 1], got {args.strength}")
     if args.stride > 1 and (args.strength < 1.0 or args.inpaint_start):
@@ -447,7 +456,7 @@ def main() -> None:
                       steps=int(sample_steps), guidance=float(guidance), seed=int(cfg.seed), returns=returns,
                       reward_fn=reward_fn, autocast_bf16=args.autocast_bf16, top_block=args.top_block,
                       horizon=args.horizon, streak=args.streak, stride=args.stride, strength=args.strength,
-                      inpaint_start=args.inpaint_start)
+                      inpaint_start=args.inpaint_start, score_guidance=args.score_guidance)
         ev.update(step=step, eval_seconds=round(time.time() - t0, 1))
         record["evaluations"].append(ev)
         write_json(out, record)

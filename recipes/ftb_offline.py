@@ -106,6 +106,7 @@ from torchrl_ftb.preference import (
     make_query_labels,
     make_block_pair_buffer,
     make_blocks,
+    score_objective,
     score_trajectories,
     top_k_mean,
     train_score_model,
@@ -122,7 +123,7 @@ RESUME_FREE_KEYS = ("resume", "overwrite", "redo_from", "stop_after", "progress"
 #: entries of another stage's section that only a later stage reads (free when that one is redone):
 #: the diffuser's sampling settings are used by the flow only
 STAGE_OWNED_KEYS = {"flow": (("diffuser", "sampler"), ("diffuser", "sample_steps"), ("diffuser", "guidance"),
-                              ("diffuser", "strength"), ("diffuser", "inpaint_start"))}
+                              ("diffuser", "strength"), ("diffuser", "inpaint_start"), ("diffuser", "score_guidance"))}
 #: what each stage leaves under ``checkpoints/`` (removed by ``redo_from``); the path tracker depends on the
 #: dataset only (:func:`path_tracker`)
 STAGE_CHECKPOINTS = {"dataset": ("tracker.pt",), "labels": ("labels",), "score_model": ("score_model.pt",), "blocks": ("blocks.pt",),
@@ -141,7 +142,7 @@ def _comparable(cfg: DictConfig) -> dict:
 
 #: options added after runs were saved, with the value that reproduces the older behaviour
 _ADDED_OPTION_NOOPS = {"score_model.num_members": 1, "flow.ensemble_rule": "mean", "flow.filter": "score_model",
-                       "diffuser.strength": 1.0}
+                       "diffuser.strength": 1.0, "diffuser.score_guidance": 0.0}
 
 
 #: options removed since runs were saved (a saved config may still hold them): session 31's two tracker_steps,
@@ -373,14 +374,29 @@ def diffuser_settings(cfg: DictConfig) -> dict:
                         sampler=d.sampler, sample_steps=d.sample_steps, guidance=d.guidance)
 
 
-def make_sampler(cfg, diffuser) -> DiffusionSampler:
+def make_sampler(cfg, diffuser, model: ScoreModel, scores: torch.Tensor) -> DiffusionSampler:
+    """The flow's sampler; with ``diffuser.score_guidance`` its samples are pushed up ``model``'s score on the
+    dataset's normalised scale (``scores``: the dataset's, as the flow's acceptance rule reads them)."""
     s = diffuser_settings(cfg)
     # a generator (not ``seed=``): every flow step must draw fresh noise, reproducibly
     device = diffuser.normalizer.mean.device
     generator = torch.Generator(device=device).manual_seed(int(cfg.seed))
+    scale = score_guidance(cfg)
+    guide = score_objective(model, float(scores.min()), float(scores.max())) if scale else None
     return DiffusionSampler(diffuser, sampler=s["sampler"], steps=s["sample_steps"], guidance=s["guidance"],
                             strength=sdedit_strength(cfg), inpaint_start=inpaint_start(cfg), generator=generator,
-                            autocast_bf16=bool(cfg.diffuser.autocast_bf16))
+                            autocast_bf16=bool(cfg.diffuser.autocast_bf16), guide=guide, guide_scale=scale)
+
+
+def score_guidance(cfg: DictConfig) -> float:
+    """``diffuser.score_guidance`` >= 0: 0 (the paper) samples by classifier-free guidance alone; lambda > 0 also
+    moves each sampler step's predicted clean sample up s_psi's gradient
+    (:meth:`~torchrl_ftb.diffusion.TrajectoryDiffuser.objective_guide`)."""
+    value = cfg.diffuser.get("score_guidance", 0.0)
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
+        raise ValueError(f"diffuser.score_guidance={value!r}: must be a number >= 0 (0: none, the paper; lambda: "
+                         f"each sampler step also climbs s_psi's gradient)")
+    return float(value)
 
 
 def switch(cfg: DictConfig, key: str) -> bool:
@@ -993,6 +1009,7 @@ def run(cfg: DictConfig) -> dict:
                              f"env.name={cfg.env.name!r} episodes terminate (falls) and the diffuser's samples carry "
                              f"no termination flag: leave it null")
     sdedit_strength(cfg)  # a malformed strength fails now, not after the diffuser's training
+    score_guidance(cfg)
     pair_neighbours(cfg)
     top_block_pairs(cfg)
     try:  # the flow's numbers fail now, not after the diffuser's training
@@ -1133,7 +1150,7 @@ def run(cfg: DictConfig) -> dict:
     t0 = time.perf_counter()
     streak = cfg.flow.get("true_return_streak")
     reward_fn = true_reward_fn(cfg.env.name, with_success=streak is not None) if cfg.flow.true_reward else None
-    flow = stage_flow(cfg, run_dir, trajs, scores, block_ids, make_sampler(cfg, diffuser), model,
+    flow = stage_flow(cfg, run_dir, trajs, scores, block_ids, make_sampler(cfg, diffuser, model, scores), model,
                       reward_fn, logger)
     timed("flow", t0)
     partial_metrics.update(flow=dict(flow["summary"]), flow_stats=flow["stats"])

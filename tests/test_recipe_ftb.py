@@ -255,6 +255,8 @@ def test_bad_config_is_a_clear_error(tmp_path):
         recipe.run(_cfg(tmp_path / "s", "diffuser.strength=0"))
     with pytest.raises(ValueError, match="diffuser.strength=1.5"):
         recipe.run(_cfg(tmp_path / "s", "diffuser.strength=1.5"))
+    with pytest.raises(ValueError, match="diffuser.score_guidance=-0.1"):
+        recipe.run(_cfg(tmp_path / "s", "diffuser.score_guidance=-0.1"))
     assert not (tmp_path / "s").exists()
     with pytest.raises(ValueError, match=r"labels.query.strategy='margin': choose one of \['random'"):
         recipe.run(_cfg(tmp_path / "g", "labels.query.strategy=margin"))
@@ -515,26 +517,44 @@ def test_final_table_reports_the_stop_rule_cut_beside_the_fill():
     assert rows["the same after the stop-rule cut (25 successes): before -> after"] == "10 -> 11"
 
 
-def test_sdedit_strength_reaches_the_flow_sampler(tmp_path):
-    """``diffuser.strength`` (flow-stage sampling): 1 samples from noise, below 1 edits the condition."""
+def test_sdedit_strength_inpaint_start_and_score_guidance_reach_the_flow_sampler(tmp_path):
+    """``diffuser.strength`` (flow-stage sampling): 1 samples from noise, below 1 edits the condition;
+    ``diffuser.inpaint_start`` holds the first step; ``diffuser.score_guidance`` climbs s_psi on the dataset's
+    normalised scale."""
     from torchrl_ftb.diffusion import make_diffuser
+    from torchrl_ftb.preference import ScoreModel, score_trajectories
     from torchrl_ftb.testing import make_toy_dataset
 
     recipe = _recipe()
     data = make_toy_dataset(num_trajectories=8, horizon=16, seed=0).select("observation", "action", "mask")
     diffuser = make_diffuser("tiny", obs_dim=data["observation"].shape[-1], action_dim=data["action"].shape[-1],
                              horizon=16, data=data, hidden_dim=16, cond_dim=16)
-    assert recipe.make_sampler(_cfg(tmp_path), diffuser).strength == 1.0
-    sampler = recipe.make_sampler(_cfg(tmp_path, "diffuser.strength=0.3"), diffuser)
+    model = ScoreModel(data["observation"].shape[-1], data["action"].shape[-1], num_cells=8, seed=0)
+    scores = score_trajectories(model, data)
+
+    def make(*overrides):
+        return recipe.make_sampler(_cfg(tmp_path, *overrides), diffuser, model, scores)
+
+    assert make().strength == 1.0
+    sampler = make("diffuser.strength=0.3")
     assert sampler.strength == 0.3
     edits = sampler(TensorDict({"condition": data[:2]}, batch_size=[2]))["sample"]
     assert edits["observation"].shape == data[:2]["observation"].shape
     assert not sampler.inpaint_start
-    held = recipe.make_sampler(_cfg(tmp_path, "diffuser.inpaint_start=true"), diffuser)
+    held = make("diffuser.inpaint_start=true")
     out = held(TensorDict({"condition": data[:2]}, batch_size=[2]))["sample"]
     torch.testing.assert_close(out["observation"][:, 0], data[:2]["observation"][:, 0], atol=1e-5, rtol=1e-5)
     with pytest.raises(ValueError, match="diffuser.inpaint_start='yes': must be true or false"):
         recipe.inpaint_start(_cfg(tmp_path, "diffuser.inpaint_start=yes"))
+    assert make().guide is None and make().guide_scale == 0.0
+    guided = make("diffuser.score_guidance=0.5")
+    assert guided.guide_scale == 0.5
+    with torch.no_grad():  # the objective is s_psi on the flow's scale: the dataset spans [0, 1]
+        hat = guided.guide(data)
+    assert abs(float(hat.min())) < 1e-5 and abs(float(hat.max()) - 1.0) < 1e-5
+    for bad, shown in (("-1", "-1"), ("true", "True"), ("nan", "nan")):
+        with pytest.raises(ValueError, match=f"diffuser.score_guidance={shown}: must be a number >= 0"):
+            recipe.score_guidance(_cfg(tmp_path, f"diffuser.score_guidance={bad}"))
 
 
 def test_options_added_later_resume_old_run_directories_at_their_no_op_defaults():

@@ -152,12 +152,20 @@ class DiffusionProcess:
         sched.set_timesteps(steps)
         return sched
 
-    def _clip_eps(self, x_t: torch.Tensor, eps: torch.Tensor, t: torch.Tensor,
-                  bounds: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
-        """``eps`` whose implied ``x_0`` is clamped to ``bounds``."""
+    def _edit_eps(self, x_t: torch.Tensor, eps: torch.Tensor, t: torch.Tensor,
+                  bounds: tuple[torch.Tensor, torch.Tensor] | None,
+                  x0_guide: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None) -> torch.Tensor:
+        """``eps`` whose implied ``x_0`` is first moved by ``x0_guide(x_0, abar_t)`` (if given), then clamped
+        to ``bounds`` (if given)."""
         abar = self._abar(x_t, t)
         a, s = abar.sqrt(), (1 - abar).sqrt()
-        x0 = ((x_t - s * eps) / a).clamp(bounds[0], bounds[1])
+        x0 = (x_t - s * eps) / a
+        if x0_guide is not None:
+            x0 = x0_guide(x0, abar)
+            if tuple(x0.shape) != tuple(x_t.shape):
+                raise ValueError(f"sample: x0_guide returned shape {list(x0.shape)}, expected {list(x_t.shape)}")
+        if bounds is not None:
+            x0 = x0.clamp(bounds[0], bounds[1])
         return (x_t - a * x0) / s
 
     @torch.no_grad()
@@ -175,6 +183,7 @@ class DiffusionProcess:
         x_init: torch.Tensor | None = None,
         strength: float = 1.0,
         known: tuple[torch.Tensor, torch.Tensor] | None = None,
+        x0_guide: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
     ) -> torch.Tensor:
         """Run the reverse process from pure noise, or from a noised ``x_init`` (SDEdit).
 
@@ -203,6 +212,10 @@ class DiffusionProcess:
             strength: share of the sampler's steps run from the noised ``x_init``, in (0, 1].
             known: ``(where, values)``: a bool mask broadcastable to ``shape`` and model-space values of
                 ``shape``; those entries are fixed (``None``: nothing fixed).
+            x0_guide: ``x0_guide(x_0, abar_t)`` -> a moved ``x_0`` of the same shape, applied to the
+                predicted ``x_0`` at every step before the clip (e.g. a step up an objective's gradient,
+                :meth:`TrajectoryDiffuser.generate`'s ``guide``); the sampler then steps with the ``eps`` the
+                moved ``x_0`` implies, so its noise stays the scheduler's (``None``: no guide).
 
         Returns:
             ``x_0`` estimate, float32 ``shape``.
@@ -238,8 +251,8 @@ class DiffusionProcess:
         for t in tqdm(timesteps, desc=f"sampling ({sampler})", disable=not progress, leave=False):
             t_batch = t.to(x.device).long().expand(x.shape[0])
             eps = self.to_eps(x, denoise(x, t_batch).float(), t_batch)
-            if x0_bounds is not None:
-                eps = self._clip_eps(x, eps, t_batch, x0_bounds)
+            if x0_bounds is not None or x0_guide is not None:
+                eps = self._edit_eps(x, eps, t_batch, x0_bounds, x0_guide)
             kwargs = {"generator": generator} if sampler == "ddpm" else {}
             if sampler == "ddim":
                 kwargs["eta"] = 0.0

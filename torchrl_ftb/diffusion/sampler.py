@@ -15,6 +15,9 @@ Example:
 """
 from __future__ import annotations
 
+import math
+from typing import Callable
+
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
@@ -58,6 +61,10 @@ class DiffusionSampler(TensorDictModuleBase):
         inpaint_start: each sample starts where its condition starts (its first observation, and
             the goal with ``observation_structure``, held during sampling;
             :meth:`TrajectoryDiffuser.generate`). False (default, the paper): anywhere.
+        guide: a differentiable objective ``[B, H]`` batch -> ``[B]`` (e.g.
+            :func:`~torchrl_ftb.preference.score_objective`) that ``guide_scale > 0`` pushes every sample up
+            (:meth:`TrajectoryDiffuser.objective_guide`). Not the paper's.
+        guide_scale: ``lambda`` of that push; 0 (default): none.
     """
 
     def __init__(
@@ -78,8 +85,16 @@ class DiffusionSampler(TensorDictModuleBase):
         progress: bool = False,
         strength: float = 1.0,
         inpaint_start: bool = False,
+        guide: Callable[[TensorDictBase], torch.Tensor] | None = None,
+        guide_scale: float = 0.0,
     ) -> None:
         super().__init__()
+        guide_scale = float(guide_scale)
+        if not math.isfinite(guide_scale) or guide_scale < 0:
+            raise ValueError(f"DiffusionSampler: guide_scale must be a finite number >= 0, got {guide_scale}")
+        if guide_scale and guide is None:
+            raise ValueError(f"DiffusionSampler: guide_scale={guide_scale} needs a guide objective")
+        self.guide, self.guide_scale = guide, guide_scale
         if sampler not in SAMPLERS:
             raise ValueError(f"DiffusionSampler: unknown sampler {sampler!r}; choose one of {SAMPLERS}")
         if not 0.0 < float(strength) <= 1.0:
@@ -115,7 +130,8 @@ class DiffusionSampler(TensorDictModuleBase):
             raise ValueError(f"DiffusionSampler: input has no {self.condition_key!r} trajectory batch")
         gen = self._generator()
         opts = dict(sampler=self.sampler, steps=self.steps, guidance=self.guidance, generator=gen,
-                    use_ema=self.use_ema, autocast_bf16=self.autocast_bf16, progress=self.progress)
+                    use_ema=self.use_ema, autocast_bf16=self.autocast_bf16, progress=self.progress,
+                    guide=self.guide, guide_scale=self.guide_scale)
         if cond is None:
             n = self.num_samples or (tensordict.batch_size[0] if tensordict.batch_dims else None)
             sample = self.diffuser.generate(None, num_samples=n, **opts)

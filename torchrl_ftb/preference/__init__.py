@@ -31,6 +31,7 @@ from torchrl_ftb.preference.score import (
     load_score_model,
     normalized_scores,
     save_score_model,
+    score_objective,
     score_trajectories,
     with_normalized_scores,
 )
@@ -62,6 +63,7 @@ __all__ = [
     "preference_metrics",
     "query_priority",
     "save_score_model",
+    "score_objective",
     "score_trajectories",
     "select_queries",
     "normalized_scores",

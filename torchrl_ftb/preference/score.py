@@ -30,9 +30,10 @@ Example:
 from __future__ import annotations
 
 import copy
+import math
 import os
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -435,6 +436,30 @@ def score_trajectories(
     if not bool(torch.isfinite(out).all()):
         raise FloatingPointError("score_trajectories: the score model produced NaN/inf scores")
     return out.to(trajs.get("mask").device)
+
+
+def score_objective(model: ScoreModel, s_min: float, s_max: float) -> Callable[[TensorDictBase], torch.Tensor]:
+    """A differentiable objective for guided sampling: an ``[N, H]`` batch's :func:`normalized_scores`
+    (``s_min -> 0``, ``s_max -> 1``, e.g. the dataset's; the flow's acceptance scale), differentiable in the
+    batch's observations and actions (:meth:`TrajectoryDiffuser.generate`'s ``guide``).
+
+    Example:
+        >>> from torchrl_ftb.testing import make_toy_dataset
+        >>> trajs = make_toy_dataset(num_trajectories=4, horizon=8)
+        >>> objective = score_objective(ScoreModel(3, 2, num_cells=8), -1.0, 1.0)
+        >>> objective(trajs).shape
+        torch.Size([4])
+    """
+    span = float(s_max) - float(s_min)
+    if not (math.isfinite(span) and span > 0):
+        raise ValueError(f"score_objective: need s_max > s_min (finite), got s_min={s_min}, s_max={s_max}")
+    device = model.gamma.device
+
+    def objective(trajs: TensorDictBase) -> torch.Tensor:
+        home = trajs.get("mask").device
+        return ((model.score(trajs.to(device)) - float(s_min)) / span).to(home)
+
+    return objective
 
 
 #: ``kind`` tag of score-model checkpoints (:func:`save_score_model`)
