@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import shutil
 import sys
 import time
@@ -335,8 +336,10 @@ def main() -> None:
         parser.error("--plot goes with --summarize FILES (it plots saved results)")
     if args.steps is None:
         parser.error("--steps is required with --run-dir")
-    if not args.score_guidance >= 0.0:
-        parser.error(f"--score-guidance must be >= 0, got {args.score_guidance}")
+    if not (math.isfinite(args.score_guidance) and args.score_guidance >= 0.0):
+        parser.error(f"--score-guidance must be a finite number >= 0, got {args.score_guidance}")
+    if args.stride > 1 and args.score_guidance:
+        parser.error("--score-guidance reads s_psi on the model's own trajectories; not with --stride")
     if not 0.0 < args.strength <= 1.0:
         parser.error(f"--strength must be in (0, 1], got {args.strength}")
     if args.stride > 1 and (args.strength < 1.0 or args.inpaint_start):

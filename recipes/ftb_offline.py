@@ -375,8 +375,9 @@ def diffuser_settings(cfg: DictConfig) -> dict:
 
 
 def make_sampler(cfg, diffuser, model: ScoreModel, scores: torch.Tensor) -> DiffusionSampler:
-    """The flow's sampler; with ``diffuser.score_guidance`` its samples are pushed up ``model``'s score on the
-    dataset's normalised scale (``scores``: the dataset's, as the flow's acceptance rule reads them)."""
+    """The flow's sampler; with ``diffuser.score_guidance`` its samples are pushed up ``model``'s (ensemble-mean)
+    score, on the dataset's normalised scale (``scores``: the dataset's). The guide's step is normalised, so the scale
+    changes nothing it samples; and it climbs s_psi whatever ``flow.filter`` and ``flow.ensemble_rule`` accept by."""
     s = diffuser_settings(cfg)
     # a generator (not ``seed=``): every flow step must draw fresh noise, reproducibly
     device = diffuser.normalizer.mean.device

@@ -508,8 +508,12 @@ def test_score_guidance_lifts_the_top_blocks_samples_above_the_data():
         return diffuser.generate(top, sampler="ddpm", steps=50, generator=torch.Generator().manual_seed(0),
                                  guide=guide, guide_scale=scale)
 
+    score_model.zero_grad(set_to_none=True)  # (training left its last gradients)
     plain, guided = samples(0.0, guide=None), samples(0.3)
-    assert torch.equal(samples(0.0)["observation"], plain["observation"])
+    # the guide reads gradients w.r.t. the sample only; an objective that ignores the sample moves nothing
+    assert all(p.grad is None for p in score_model.parameters())
+    constant = samples(0.3, guide=lambda trajs: torch.zeros(trajs.batch_size[0]))
+    assert torch.equal(constant["observation"], plain["observation"])
     before, after = masked_true_return(plain, toy_reward), masked_true_return(guided, toy_reward)
     best = float(masked_true_return(data, toy_reward).max())
     above = lambda r: int((r > best).sum())  # noqa: E731

@@ -552,6 +552,12 @@ def test_sdedit_strength_inpaint_start_and_score_guidance_reach_the_flow_sampler
     with torch.no_grad():  # the objective is s_psi on the flow's scale: the dataset spans [0, 1]
         hat = guided.guide(data)
     assert abs(float(hat.min())) < 1e-5 and abs(float(hat.max()) - 1.0) < 1e-5
+    cond = TensorDict({"condition": data[:2]}, batch_size=[2])
+    guided.generator.manual_seed(0)
+    pushed = guided(cond.clone())["sample"]
+    plain = make()
+    plain.generator.manual_seed(0)
+    assert not torch.allclose(pushed["observation"], plain(cond.clone())["sample"]["observation"])
     for bad, shown in (("-1", "-1"), ("true", "True"), ("nan", "nan")):
         with pytest.raises(ValueError, match=f"diffuser.score_guidance={shown}: must be a number >= 0"):
             recipe.score_guidance(_cfg(tmp_path, f"diffuser.score_guidance={bad}"))
@@ -561,7 +567,7 @@ def test_options_added_later_resume_old_run_directories_at_their_no_op_defaults(
     """A run directory written before an option existed resumes when the option is at its no-op value."""
     recipe = _recipe()
     old = {"diffuser": {"guidance": None}, "flow": {"top_k": 8}, "score_model": {}}
-    new = {"diffuser": {"guidance": None, "strength": 1.0, "inpaint_start": False}, "flow": {"top_k": 8, "filter": "score_model",
+    new = {"diffuser": {"guidance": None, "strength": 1.0, "inpaint_start": False, "score_guidance": 0.0}, "flow": {"top_k": 8, "filter": "score_model",
                                                                        "ensemble_rule": "mean"},
            "score_model": {"num_members": 1}}
     assert recipe._diff_keys(new, old) == []

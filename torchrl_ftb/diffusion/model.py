@@ -427,9 +427,12 @@ class TrajectoryDiffuser(nn.Module):
 
             g = grad_{x_0} J(decode(x_0));    x_0 <- x_0 + scale * (1 - abar_t) * g / rms(g)
 
-        in model space (z-scored dims), ``rms`` per sample: ``scale`` is the root-mean-square distance, in the
-        data's standard deviations, that a fully noised step moves each entry, whatever the objective's units
-        (a score summed over 500 steps has a gradient ~1e-4 per entry). This is Janner et al.'s (2022) guided
+        in model space (z-scored dims), ``rms`` per sample over all its entries (padded steps and the validity
+        channel included, whose gradient is zero): ``scale`` is the root-mean-square distance, in the data's standard
+        deviations, that a fully noised step moves the sample, whatever the objective's units or scale (a score
+        summed over 500 steps has a tiny gradient per entry; any positive rescaling of the objective samples the
+        same). The entries that can move move more when they are few (a short detected length; a gradient
+        concentrated on one step); the clip to the data's bounds limits them. This is Janner et al.'s (2022) guided
         sampling in ``x_0`` form, with the objective read on the predicted clean sample so no gradient goes
         through the denoiser (one objective forward/backward per step); the ``1 - abar_t`` weight fades the push
         as the noise does, so the last steps are the denoiser's alone. The detected mask and the validity
@@ -446,10 +449,14 @@ class TrajectoryDiffuser(nn.Module):
                 if value.shape != z.shape[:1]:
                     raise ValueError(f"generate: the guide objective returned shape {list(value.shape)}, "
                                      f"expected [{z.shape[0]}] (one number per trajectory)")
+                if not value.requires_grad:  # the objective does not read the sample (e.g. a constant)
+                    return x0
                 (grad,) = torch.autograd.grad(value.sum(), z, allow_unused=True)
-            if grad is None:  # the objective does not read the sample (e.g. a constant)
+            if grad is None:
                 return x0
-            grad = torch.nan_to_num(grad.to(x0.dtype))
+            if not bool(torch.isfinite(grad).all()):
+                raise FloatingPointError("generate: the guide objective's gradient is NaN/inf")
+            grad = grad.to(x0.dtype)
             rms = grad.pow(2).flatten(1).mean(1).sqrt().view(-1, *([1] * (grad.ndim - 1)))
             direction = torch.where(rms > 0, grad / rms.clamp_min(torch.finfo(grad.dtype).tiny), 0.0)
             return x0 + scale * (1 - abar) * direction

@@ -453,11 +453,10 @@ def score_objective(model: ScoreModel, s_min: float, s_max: float) -> Callable[[
     span = float(s_max) - float(s_min)
     if not (math.isfinite(span) and span > 0):
         raise ValueError(f"score_objective: need s_max > s_min (finite), got s_min={s_min}, s_max={s_max}")
-    device = model.gamma.device
 
     def objective(trajs: TensorDictBase) -> torch.Tensor:
         home = trajs.get("mask").device
-        return ((model.score(trajs.to(device)) - float(s_min)) / span).to(home)
+        return ((model.score(trajs.to(model.gamma.device)) - float(s_min)) / span).to(home)
 
     return objective
 
