@@ -18,6 +18,8 @@ for s in 4 5 6 7 8; do
   args+=("button-press s$s, λ 0=$M/button-press-v3_e4_s${s}_v4500_tracked=$B/button-press-v3_e4_s${s}_v4500.json")
   args+=("button-press s$s, λ 0.3=$M/button-press-v3_e4_s${s}_v4500_tracked_sg0.3=$A/button-press-v3_e4_s${s}_v4500_tracked_sg0.3.json")
 done
+f=$A/button-press-v3_e4_s4_v4500_tracked_sg0.1.json
+[ -f $f ] && args+=("button-press s4, λ 0.1=$M/button-press-v3_e4_s4_v4500_tracked_sg0.1=$f")
 args+=("button-press s4, λ 0.3, inpaint_start, relabelled BC=$M/button-press-v3_e4_s4_v4500_tracked_sg0.3_inpaint_relabel=$A/button-press-v3_e4_s4_v4500_tracked_sg0.3_inpaint.json")
 args+=("drawer-open s4, λ 0=$M/drawer-open-v3_e8_s4_v4500=$B/drawer-open-v3_e8_s4_v4500.json")
 args+=("drawer-open s4, λ 0.3=$M/drawer-open-v3_e8_s4_v4500_sg0.3=$A/drawer-open-v3_e8_s4_v4500_sg0.3.json")
