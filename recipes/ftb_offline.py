@@ -393,10 +393,18 @@ def score_guidance(cfg: DictConfig) -> float:
     """``diffuser.score_guidance`` >= 0: 0 (the paper) samples by classifier-free guidance alone; lambda > 0 also
     moves each sampler step's predicted clean sample up s_psi's gradient
     (:meth:`~torchrl_ftb.diffusion.TrajectoryDiffuser.objective_guide`)."""
-    value = cfg.diffuser.get("score_guidance", 0.0)
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
-        raise ValueError(f"diffuser.score_guidance={value!r}: must be a number >= 0 (0: none, the paper; lambda: "
-                         f"each sampler step also climbs s_psi's gradient)")
+    return number_option(cfg, "diffuser.score_guidance", 0.0, within=lambda v: math.isfinite(v) and v >= 0,
+                         expected="a number >= 0 (0: none, the paper; lambda: each sampler step also climbs s_psi's "
+                                  "gradient)")
+
+
+def number_option(cfg: DictConfig, key: str, default: float, *, within: Callable[[float], bool],
+                  expected: str) -> float:
+    """The number option ``key`` (absent: ``default``) when ``within`` it, or a clear error naming it and what it
+    must be (``expected``); :func:`switch`'s twin for numbers."""
+    value = OmegaConf.select(cfg, key, default=default)
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not within(float(value)):
+        raise ValueError(f"{key}={value!r}: must be {expected}")
     return float(value)
 
 
@@ -422,11 +430,9 @@ def top_block_pairs(cfg: DictConfig) -> bool:
 def sdedit_strength(cfg: DictConfig) -> float:
     """``diffuser.strength`` in (0, 1]: 1 samples from noise (the paper); below 1 each flow sample is an
     SDEdit edit of its condition (:class:`~torchrl_ftb.diffusion.DiffusionSampler`)."""
-    value = cfg.diffuser.get("strength", 1.0)
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 < float(value) <= 1.0:
-        raise ValueError(f"diffuser.strength={value!r}: must be a number in (0, 1] (1: sample from noise, "
-                         f"the paper; below 1: an SDEdit edit of the condition)")
-    return float(value)
+    return number_option(cfg, "diffuser.strength", 1.0, within=lambda v: 0.0 < v <= 1.0,
+                         expected="a number in (0, 1] (1: sample from noise, the paper; below 1: an SDEdit edit of "
+                                  "the condition)")
 
 
 def pair_neighbours(cfg: DictConfig) -> int | None:

@@ -30,7 +30,6 @@ Example:
 from __future__ import annotations
 
 import copy
-import math
 import os
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -450,13 +449,12 @@ def score_objective(model: ScoreModel, s_min: float, s_max: float) -> Callable[[
         >>> objective(trajs).shape
         torch.Size([4])
     """
-    span = float(s_max) - float(s_min)
-    if not (math.isfinite(span) and span > 0):
-        raise ValueError(f"score_objective: need s_max > s_min (finite), got s_min={s_min}, s_max={s_max}")
+    s_min, s_max = float(s_min), float(s_max)
+    normalized_scores(torch.tensor([s_min]), s_min, s_max)  # its span check, now rather than at the first step
 
     def objective(trajs: TensorDictBase) -> torch.Tensor:
         home = trajs.get("mask").device
-        return ((model.score(trajs.to(model.gamma.device)) - float(s_min)) / span).to(home)
+        return normalized_scores(model.score(trajs.to(model.gamma.device)), s_min, s_max).to(home)
 
     return objective
 
