@@ -10,9 +10,9 @@ and compare top-k -> final set with both sides read the same way. Open-loop repl
 Usage::
 
     python bench/tracked_replay.py --run-dirs RUN [RUN ...] --horizon 500 --out bench/results/tracked.json
-    python bench/tracked_replay.py --run-dirs RUN --candidates 4 --out F   # shooting: exact on the top-k
-    python bench/tracked_replay.py --run-dirs RUN --candidates 4 --lookahead 5 --out F   # scored 5 steps ahead
-    python bench/tracked_replay.py --run-dirs RUN --candidates 4 --readers 4 --out F   # each path's mean of 4 readings
+        # shooting with 4 candidates (exact on the top-k), each generated path's mean of 4 readings
+    python bench/tracked_replay.py --run-dirs RUN --lookahead 5 --out F   # each candidate scored 5 steps ahead
+    python bench/tracked_replay.py --run-dirs RUN --candidates 1 --out F   # the inverse-dynamics tracker alone
     python bench/tracked_replay.py --summarize bench/results/tracked_replay_s31/*.json
 """
 from __future__ import annotations
@@ -33,10 +33,11 @@ from torchrl_ftb.analysis import check_readers, tracked_improvement  # noqa: E40
 from torchrl_ftb.policy import fit_path_tracker  # noqa: E402
 
 
-def tracked(run: Path, *, horizon: int, tracker_steps: int, seed: int, progress: bool, candidates: int = 1,
-            noise: float = 0.3, lookahead: int = 1, readers: int = 1) -> dict:
+def tracked(run: Path, *, horizon: int, tracker_steps: int, seed: int, progress: bool, candidates: int = 4,
+            noise: float = 0.3, lookahead: int = 1, readers: int | None = None) -> dict:
     """:func:`torchrl_ftb.analysis.tracked_improvement` of a finished run directory's final set (``candidates``
-    > 1: shooting in the simulator, :func:`torchrl_ftb.analysis.track_paths`, scored over ``lookahead`` steps)."""
+    > 1: shooting in the simulator, :func:`torchrl_ftb.analysis.track_paths`, scored over ``lookahead`` steps;
+    ``readers`` None: 4 readings with shooting, 1 without; the recipe's ``analysis.tracked`` defaults)."""
     cfg, data, meta, final, original, generated, rows = load_flow(run)
     tracker = fit_path_tracker(data, steps=tracker_steps, seed=seed, progress=progress)
     out = tracked_improvement(final, original, generated, data, meta, task=str(cfg.env.name), horizon=horizon,
@@ -98,23 +99,24 @@ def main() -> None:
     parser.add_argument("--horizon", type=int, default=500, help="the stop-rule return's horizon (Meta-World: 500)")
     parser.add_argument("--tracker-steps", type=int, default=4000, help="Adam steps fitting the tracker")
     parser.add_argument("--seed", type=int, default=0, help="the tracker's seed")
-    parser.add_argument("--candidates", type=int, default=1,
-                        help="actions tried per step: 1 = the tracker alone; more = shooting in the simulator (the "
-                             "path's own action, the tracker's, perturbations), exact on recorded paths")
+    parser.add_argument("--candidates", type=int, default=4,
+                        help="actions tried per step: more than 1 (default 4) = shooting in the simulator (the path's "
+                             "own action, the tracker's, perturbations), exact on recorded paths; 1 = the tracker alone")
     parser.add_argument("--noise", type=float, default=0.3, help="std of the shooting's perturbations")
     parser.add_argument("--lookahead", type=int, default=1,
                         help="shooting: steps each candidate is scored over (the path's own next actions shifted by "
                              "its offset); 1 = greedy")
-    parser.add_argument("--readers", type=int, default=1,
+    parser.add_argument("--readers", type=int, default=None,
                         help="shooting: read each generated path this many times, each with other perturbations, "
-                             "and take the means (a property of the path, not of one reading's draws)")
+                             "and take the means (a property of the path, not of one reading's draws); default 4 "
+                             "with shooting, 1 with the tracker alone")
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "tracked_replay.json")
     parser.add_argument("--no-progress", action="store_true")
     args = runs_from_args(parser, summarize)
     if args is None:
         return
     try:  # before the tracker is fitted
-        check_readers(args.readers, args.candidates)
+        args.readers = check_readers(args.readers, args.candidates)
     except ValueError as err:
         parser.error(f"--readers {args.readers} with --candidates {args.candidates}: {err}")
     measure_runs(args.run_dirs, args.out, {"horizon": args.horizon, "tracker_steps": args.tracker_steps,

@@ -661,16 +661,19 @@ def tracker_lookahead(cfg: DictConfig) -> int:
 
 
 def tracker_candidates(cfg: DictConfig) -> int:
-    """``tracker.candidates``: actions the Meta-World ``analysis.tracked`` reading tries per step (>= 1; default 1,
-    the inverse-dynamics tracker alone; more shoots in the simulator, :func:`torchrl_ftb.analysis.track_paths`)."""
-    return _tracker_count(cfg, "candidates", 1)
+    """``tracker.candidates``: actions the Meta-World ``analysis.tracked`` reading tries per step (>= 1; default 4:
+    shooting in the simulator, :func:`torchrl_ftb.analysis.track_paths`, exact on recorded paths; 1: the
+    inverse-dynamics tracker alone, whose own error moved drawer-open's top-k max by +-100, BENCHMARKS #5 session 48)."""
+    return _tracker_count(cfg, "candidates", 4)
 
 
 def tracker_readers(cfg: DictConfig) -> int:
     """``tracker.readers``: how many times the Meta-World shooting reading (``tracker.candidates`` > 1) reads each
-    generated path, each with other perturbations; the path's numbers are the means (>= 1; default 1;
-    :func:`torchrl_ftb.analysis.tracked_improvement`). More than 1 needs shooting."""
-    n = _tracker_count(cfg, "readers", 1)
+    generated path, each with other perturbations; the path's numbers are the means (>= 1; null, the default: 4
+    with shooting, 1 with the tracker alone, :func:`torchrl_ftb.analysis.check_readers`). More than 1 needs
+    shooting."""
+    value = (cfg.get("tracker") or {}).get("readers")
+    n = None if value is None else _tracker_count(cfg, "readers", 1)
     try:
         return check_readers(n, tracker_candidates(cfg))
     except ValueError as err:
@@ -858,7 +861,7 @@ def open_loop_rows(ol: dict | None) -> list[tuple[str, str]]:
 
 
 def tracked_rows(tr: dict | None) -> list[tuple[str, str]]:
-    """The report rows of ``analysis.tracked`` (Meta-World: the inverse-dynamics tracker, stop-rule returns;
+    """The report rows of ``analysis.tracked`` (Meta-World: shooting or the inverse-dynamics tracker, stop-rule returns;
     locomotion, ``horizon`` None: the simulator shooting tracker, plain returns)."""
     if tr is None:
         return []

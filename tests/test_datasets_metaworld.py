@@ -358,9 +358,13 @@ def test_tracked_replay_reads_both_sides_through_the_same_tracker(tiny_dataset, 
     on = OmegaConf.merge(cfg, {"analysis": {"tracked": True}, "tracker": {"steps": 50}})
     ours = recipe.tracked_analysis(on, run, flow, td, meta, progress=False)
     assert ours["fidelity"] == out["fidelity"] and ours["tracked"] == out["tracked"] and "samples" not in ours
+    # both default to the benchmarks' reading: shooting with 4 candidates, each generated path read 4 times
+    assert ours["shooting"]["candidates"] == out["shooting"]["candidates"] == 4
+    assert ours["shooting"]["readers"] == out["shooting"]["readers"] == 4
     assert len(json.loads((tmp_path / "tracked.json").read_text())["samples"]) == 2
     table = report_rows(recipe, analysis={"tracked": ours})
-    assert table["true return top-k tracked in closed loop (stop rule, 150 steps): mean / max before -> after"]
+    assert table["true return top-k tracked in closed loop (stop rule, 150 steps; shooting, 4 candidates, generated "
+                 "paths: mean of 4 readings): mean / max before -> after"]
     assert "generated in final set, tracked: return claimed -> tracked (hand off its path, m, median)" in table
     assert recipe.tracked_analysis(on, run, flow, td, {"domain": "toy"}, progress=False) is None
     with pytest.raises(ValueError, match="tracker.steps=0"):
@@ -482,8 +486,11 @@ def test_shooting_tracker_reproduces_recorded_paths_and_corrects_wrong_actions(t
     with pytest.raises(ValueError, match="tracker.candidates=0"):
         recipe.tracker_candidates(OmegaConf.merge(cfg, {"tracker": {"candidates": 0}}))
     with pytest.raises(ValueError, match="tracker.readers=2: more than one reading needs shooting"):
-        recipe.tracker_readers(OmegaConf.merge(cfg, {"tracker": {"readers": 2}}))
+        recipe.tracker_readers(OmegaConf.merge(cfg, {"tracker": {"readers": 2, "candidates": 1}}))
     assert recipe.tracker_readers(OmegaConf.merge(cfg, {"tracker": {"readers": 2, "candidates": 4}})) == 2
+    # unset (the config's null): four readings with shooting, one with the tracker alone, so candidates=1 alone is valid
+    assert recipe.tracker_readers(OmegaConf.merge(cfg, {"tracker": {"readers": None, "candidates": 1}})) == 1
+    assert recipe.tracker_candidates(cfg) == 4 and recipe.tracker_readers(cfg) == 4
     table = report_rows(recipe, analysis={"tracked": {**out, "shooting": {**out["shooting"], "lookahead": 5}}})
     assert ("true return top-k tracked in closed loop (stop rule, 150 steps; shooting, 3 candidates, 5-step "
             "lookahead): mean / max before -> after") in table

@@ -93,10 +93,23 @@ def track_paths(task: str, jobs: list[tuple[int, int]], paths: torch.Tensor, len
                                        on_episode=on_episode, controllers=controllers)
 
 
-def check_readers(readers: int, candidates: int) -> int:
+#: readings per generated path when a caller leaves ``readers`` unset (``None``) and shoots: one reading's
+#: sweep-into success is a lottery (BENCHMARKS.md session 48), four were the benchmarks' reading from session 49 on
+SHOOTING_READERS = 4
+
+
+def check_readers(readers: int | None, candidates: int) -> int:
     """``readers`` as an int, checked against ``candidates`` (:func:`tracked_improvement`): >= 1, and more than one
-    reading needs shooting (``candidates > 1``; the tracker alone reads a path the same every time). A
-    ``ValueError`` otherwise; callers prefix the option names they take."""
+    reading needs shooting (``candidates > 1``; the tracker alone reads a path the same every time). ``None``:
+    :data:`SHOOTING_READERS` with shooting, else 1. A ``ValueError`` otherwise; callers prefix the option names
+    they take.
+
+    Example:
+        >>> check_readers(None, 4), check_readers(None, 1), check_readers(2, 4)
+        (4, 1, 2)
+    """
+    if readers is None:
+        return SHOOTING_READERS if candidates > 1 else 1
     if readers < 1:
         raise ValueError(f"readers={readers}: must be >= 1")
     if readers > 1 and candidates < 2:
@@ -129,7 +142,7 @@ def tracked_improvement(
     candidates: int = 1,
     noise: float = 0.3,
     lookahead: int = 1,
-    readers: int = 1,
+    readers: int | None = 1,
     progress: bool = False,
 ) -> dict:
     """The flow's improvement (original top-k -> final set) with every trajectory's states tracked in closed loop.
@@ -153,7 +166,8 @@ def tracked_improvement(
             (:func:`track_paths`' ``reader`` 0, 1, ...), and take its mean tracked return, success rate and hand
             deviation over the readings: a property of the path rather than of one reading's draws (on
             sweep-into one reading's success is a lottery, BENCHMARKS.md session 48). The top-k is read once:
-            shooting reproduces a recorded path whatever the perturbations (its own action wins ties).
+            shooting reproduces a recorded path whatever the perturbations (its own action wins ties). ``None``:
+            :func:`check_readers`' default (4 with shooting, else 1).
         progress: a progress bar over the episodes.
 
     Returns:
