@@ -561,6 +561,22 @@ def test_sdedit_strength_inpaint_start_and_score_guidance_reach_the_flow_sampler
     for bad, shown in (("-1", "-1"), ("true", "True"), ("nan", "nan")):
         with pytest.raises(ValueError, match=f"diffuser.score_guidance={shown}: must be a number >= 0"):
             recipe.score_guidance(_cfg(tmp_path, f"diffuser.score_guidance={bad}"))
+    # diffuser.score_guidance_hand_penalty: a cost inside score guidance, Meta-World's hand model
+    pay = recipe.penalized_objective(lambda t: t["observation"].sum((-1, -2)), lambda t: t["action"].sum((-1, -2)), 2.0)
+    torch.testing.assert_close(pay(data[:2]), data[:2]["observation"].sum((-1, -2)) - 2 * data[:2]["action"].sum((-1, -2)))
+    assert recipe.score_guidance_hand_penalty(_cfg(tmp_path)) == 0.0
+    with pytest.raises(ValueError, match="score_guidance_hand_penalty=1.0: weighs a cost inside score guidance"):
+        recipe.run(_cfg(tmp_path / "hp", "diffuser.score_guidance_hand_penalty=1"))  # before anything is written
+    assert not (tmp_path / "hp").exists()
+    with pytest.raises(ValueError, match="is a Meta-World penalty .* is toy: leave it 0"):
+        recipe.score_guidance_hand_penalty(_cfg(tmp_path, "diffuser.score_guidance=0.3",
+                                                "diffuser.score_guidance_hand_penalty=1"))
+    with pytest.raises(ValueError, match="score_guidance_hand_penalty=-1: must be a number >= 0"):
+        recipe.score_guidance_hand_penalty(_cfg(tmp_path, "diffuser.score_guidance_hand_penalty=-1"))
+    metaworld = _cfg(tmp_path, "env.name=button-press-v3", "diffuser.score_guidance=0.3",
+                     "diffuser.score_guidance_hand_penalty=1")
+    with pytest.raises(ValueError, match="needs the dataset"):
+        recipe.make_sampler(metaworld, diffuser, model, scores)
 
 
 def test_options_added_later_resume_old_run_directories_at_their_no_op_defaults():
