@@ -4,7 +4,10 @@ The bench form of :func:`torchrl_ftb.analysis.tracked_improvement` (see :mod:`to
 for the method): for finished FTB run directories on generated Meta-World data, fit a goal-conditioned
 inverse-dynamics tracker on the run's dataset, then track every original top-k trajectory and every generated
 trajectory of the final set (``checkpoints/flow.pt``) in the simulator from its (nearest) dataset start,
-and compare top-k -> final set with both sides read the same way. Open-loop replays of the same samples:
+and compare top-k -> final set with both sides read the same way. By default (since session 52) each step shoots:
+the path's own action, the tracker's and perturbations are tried in the simulator (``--candidates 4``, exact on
+recorded paths) and every generated path is read 4 times (``--readers``); ``--candidates 1``: the tracker alone
+(the readings of sessions 31-46). Open-loop replays of the same samples:
 ``bench/open_loop.py``.
 
 Usage::
@@ -115,6 +118,8 @@ def main() -> None:
     args = runs_from_args(parser, summarize)
     if args is None:
         return
+    if args.candidates < 1:
+        parser.error(f"--candidates {args.candidates}: must be >= 1 (1: the tracker alone)")
     try:  # before the tracker is fitted
         args.readers = check_readers(args.readers, args.candidates)
     except ValueError as err:

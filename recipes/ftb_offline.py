@@ -378,12 +378,12 @@ def diffuser_settings(cfg: DictConfig) -> dict:
 
 
 def make_sampler(cfg, diffuser, model: ScoreModel, scores: torch.Tensor,
-                 data: TensorDictBase | None = None) -> DiffusionSampler:
+                 hand_penalty: Callable[[TensorDictBase], torch.Tensor] | None = None) -> DiffusionSampler:
     """The flow's sampler; with ``diffuser.score_guidance`` its samples are pushed up ``model``'s (ensemble-mean)
     score, on the dataset's normalised scale (``scores``: the dataset's). The guide's step is normalised, so the scale
     changes nothing it samples; and it climbs s_psi whatever ``flow.filter`` and ``flow.ensemble_rule`` accept by.
-    With ``diffuser.score_guidance_hand_penalty`` mu the guide climbs ``s_hat - mu * hand penalty`` instead
-    (:func:`~torchrl_ftb.envs.metaworld_hand_penalty`, fitted on ``data``, the dataset; Meta-World only)."""
+    With ``diffuser.score_guidance_hand_penalty`` mu the guide climbs ``s_hat - mu * hand_penalty`` instead
+    (:func:`guide_hand_penalty`, fitted on the dataset; Meta-World only)."""
     s = diffuser_settings(cfg)
     # a generator (not ``seed=``): every flow step must draw fresh noise, reproducibly
     device = diffuser.normalizer.mean.device
@@ -391,13 +391,25 @@ def make_sampler(cfg, diffuser, model: ScoreModel, scores: torch.Tensor,
     scale, mu = score_guidance(cfg), score_guidance_hand_penalty(cfg)
     guide = score_objective(model, float(scores.min()), float(scores.max())) if scale else None
     if guide is not None and mu:
-        if data is None:
-            raise ValueError("make_sampler: diffuser.score_guidance_hand_penalty needs the dataset (data=) to fit "
-                             "the hand model on")
-        guide = penalized_objective(guide, metaworld_hand_penalty(data), mu)
+        if hand_penalty is None:
+            raise ValueError("make_sampler: diffuser.score_guidance_hand_penalty needs the hand penalty fitted on "
+                             "the dataset (hand_penalty=guide_hand_penalty(cfg, data))")
+        guide = penalized_objective(guide, hand_penalty, mu)
     return DiffusionSampler(diffuser, sampler=s["sampler"], steps=s["sample_steps"], guidance=s["guidance"],
                             strength=sdedit_strength(cfg), inpaint_start=inpaint_start(cfg), generator=generator,
                             autocast_bf16=bool(cfg.diffuser.autocast_bf16), guide=guide, guide_scale=scale)
+
+
+def guide_hand_penalty(cfg: DictConfig, data: TensorDictBase) -> Callable[[TensorDictBase], torch.Tensor] | None:
+    """The hand penalty of ``diffuser.score_guidance_hand_penalty``, fitted on the dataset ``data``
+    (:func:`~torchrl_ftb.envs.metaworld_hand_penalty`); None when the option is 0. Called once the dataset is
+    loaded, so data it cannot fit fail before any training, with the option's name."""
+    if not score_guidance_hand_penalty(cfg):
+        return None
+    try:
+        return metaworld_hand_penalty(data)
+    except ValueError as err:
+        raise ValueError(f"diffuser.score_guidance_hand_penalty: {err}") from None
 
 
 def penalized_objective(objective: Callable[[TensorDictBase], torch.Tensor],
@@ -424,12 +436,12 @@ def score_guidance_hand_penalty(cfg: DictConfig) -> float:
     mu = number_option(cfg, "diffuser.score_guidance_hand_penalty", 0.0, within=lambda v: math.isfinite(v) and v >= 0,
                        expected="a number >= 0 (0: none; mu: the score guide also pays mu x the hand-model error "
                                 "in units of the dataset's largest)")
-    if mu and not score_guidance(cfg):
-        raise ValueError(f"diffuser.score_guidance_hand_penalty={mu}: weighs a cost inside score guidance; set "
-                         f"diffuser.score_guidance > 0 too")
     if mu and env_kind(cfg.env.name) != "metaworld":
         raise ValueError(f"diffuser.score_guidance_hand_penalty is a Meta-World penalty (the hand model); "
                          f"env.name={cfg.env.name!r} is {env_kind(cfg.env.name)}: leave it 0")
+    if mu and not score_guidance(cfg):
+        raise ValueError(f"diffuser.score_guidance_hand_penalty={mu}: weighs a cost inside score guidance; set "
+                         f"diffuser.score_guidance > 0 too")
     return mu
 
 
@@ -709,8 +721,9 @@ def tracker_readers(cfg: DictConfig) -> int:
     shooting."""
     value = (cfg.get("tracker") or {}).get("readers")
     n = None if value is None else _tracker_count(cfg, "readers", 1)
+    candidates = tracker_candidates(cfg)  # its own error first
     try:
-        return check_readers(n, tracker_candidates(cfg))
+        return check_readers(n, candidates)
     except ValueError as err:
         raise ValueError(f"tracker.readers={n}: {err}; set tracker.candidates") from None
 
@@ -815,8 +828,10 @@ def tracked_analysis(cfg: DictConfig, run: RunDir, flow: dict, trajs: TensorDict
     """``analysis.tracked``: the flow's improvement with every state path tracked in closed loop (generated
     Meta-World data and locomotion, else None; off by default).
 
-    Meta-World: tracks, with the run's inverse-dynamics tracker (:func:`path_tracker`), the original top-k and
-    the final set's generated trajectories in the simulator (:func:`torchrl_ftb.analysis.tracked_improvement`).
+    Meta-World: tracks the original top-k and the final set's generated trajectories in the simulator
+    (:func:`torchrl_ftb.analysis.tracked_improvement`): by default shooting (``tracker.candidates`` 4: the path's own
+    action, the run's inverse-dynamics tracker's, :func:`path_tracker`, and perturbations), each generated path read
+    ``tracker.readers`` times (null: 4); ``tracker.candidates=1``: the inverse-dynamics tracker alone.
     Locomotion: a shooting tracker with the simulator as its model (``tracker.lookahead``) follows every path of
     both sets from its own first state (:func:`torchrl_ftb.analysis.locomotion_tracked_improvement`). Writes the per-sample
     numbers to ``tracked.json`` and returns the summary.
@@ -1135,6 +1150,7 @@ def run(cfg: DictConfig) -> dict:
                              f"{int(trajs.batch_size[0])} at {meta.get('path')}); start a new run_dir")
     if int(cfg.flow.top_k) > trajs.batch_size[0]:  # fails now, not at the flow stage
         raise ValueError(f"flow.top_k={cfg.flow.top_k} exceeds the dataset's {trajs.batch_size[0]} trajectories")
+    hand_penalty = guide_hand_penalty(cfg, trajs)  # fitted now: data it cannot fit fail before any training
     timed("dataset", t0)
     if (out := stopped("dataset")) is not None:
         return out
@@ -1196,7 +1212,7 @@ def run(cfg: DictConfig) -> dict:
     t0 = time.perf_counter()
     streak = cfg.flow.get("true_return_streak")
     reward_fn = true_reward_fn(cfg.env.name, with_success=streak is not None) if cfg.flow.true_reward else None
-    flow = stage_flow(cfg, run_dir, trajs, scores, block_ids, make_sampler(cfg, diffuser, model, scores, trajs), model,
+    flow = stage_flow(cfg, run_dir, trajs, scores, block_ids, make_sampler(cfg, diffuser, model, scores, hand_penalty), model,
                       reward_fn, logger)
     timed("flow", t0)
     partial_metrics.update(flow=dict(flow["summary"]), flow_stats=flow["stats"])

@@ -582,7 +582,7 @@ def fit_metaworld_hand_model(trajectories: TensorDictBase, *, ridge: float = 1e-
     if not bool(pair.any()):
         raise ValueError("fit_metaworld_hand_model: no pair of consecutive valid steps to fit on")
     x, y = _hand_features(o[pair], a[pair]), (o1[pair][:, :3] - o[pair][:, :3])
-    eye = torch.eye(x.shape[1], dtype=x.dtype)
+    eye = torch.eye(x.shape[1], dtype=x.dtype, device=x.device)
     return torch.linalg.solve(x.T @ x + ridge * eye, x.T @ y)
 
 

@@ -26,4 +26,4 @@ OMP_NUM_THREADS=$THREADS .venv/bin/python recipes/ftb_offline.py env.name=drawer
   preset=cpu run_dir=$DST resume=true progress=false score_model.horizon=500 flow.top_k=200 flow.true_return_horizon=500 \
   eval.num_episodes=50 diffuser.observation_structure=true flow.max_hand_model_error=0.01 \
   flow.max_contactless_object_path=1x diffuser.steps=$N dataset.noise=8 'dataset.groups=[expert,within,random]' \
-  flow.true_return_streak=25 analysis.tracked=true diffuser.checkpoint_every=1000
+  flow.true_return_streak=25 analysis.tracked=true tracker.candidates=1 diffuser.checkpoint_every=1000

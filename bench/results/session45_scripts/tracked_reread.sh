@@ -3,4 +3,4 @@
 # episode's start, beat the top-k? usage: bash tracked_reread.sh OUT.json RUN_DIR ...   (venv active; one core)
 OUT=$1; shift
 export OMP_NUM_THREADS=1
-python bench/tracked_replay.py --run-dirs "$@" --horizon 500 --out $OUT --no-progress
+python bench/tracked_replay.py --run-dirs "$@" --horizon 500 --candidates 1 --out $OUT --no-progress

@@ -4,4 +4,4 @@
 T=$1; N=$2; S=$3; P=$4
 . "$(dirname "$0")/../session43_scripts/common.sh"
 R=/work/runs/room_s45; mkdir -p $R; W=$R/${T}_e${N}_s${S}_v${P}_tracked
-python recipes/ftb_offline.py $C diffuser.steps=$P run_dir=$W analysis.tracked=true "$V" > $W.log 2>&1
+python recipes/ftb_offline.py $C diffuser.steps=$P run_dir=$W analysis.tracked=true tracker.candidates=1 "$V" > $W.log 2>&1

@@ -7,6 +7,6 @@ OUT=$1; shift
 export OMP_NUM_THREADS=1
 mkdir -p $OUT
 for RUN in "$@"; do
-  python bench/tracked_replay.py --run-dirs $RUN --horizon 500 --candidates 4 --out $OUT/$(basename $RUN).json \
+  python bench/tracked_replay.py --run-dirs $RUN --horizon 500 --candidates 4 --readers 1 --out $OUT/$(basename $RUN).json \
     --no-progress || exit 1
 done

@@ -7,7 +7,7 @@
 T=$1; N=$2; S=$3; P=$4
 . "$(dirname "$0")/../session43_scripts/common.sh"
 R=/work/runs/room_s48; mkdir -p $R; W=$R/${T}_e${N}_s${S}_v${P}_mn_tracked
-python recipes/ftb_offline.py $C diffuser.steps=$P run_dir=$W analysis.tracked=true \
+python recipes/ftb_offline.py $C diffuser.steps=$P run_dir=$W analysis.tracked=true tracker.candidates=1 \
   "diffuser.overrides={prediction_type:v_prediction,encoder_masked_norm:true}" > $W.log 2>&1 || exit 1
 python bench/diffuser_conditioning.py --run-dir $W --per-block 16 --top-block --horizon 500 --streak 25 \
   --tag room-mn${P}-s48 --steps $P --work-dir ${W}_own$P > ${W}_cond.log 2>&1
