@@ -78,7 +78,6 @@ from torchrl_ftb.envs import (
     metaworld_frame_stack_check,
     metaworld_hand_model_check,
     metaworld_hand_model_error,
-    metaworld_hand_penalty,
     metaworld_hand_step_check,
     metaworld_max_hand_step,
     metaworld_physics_errors,
@@ -124,8 +123,7 @@ RESUME_FREE_KEYS = ("resume", "overwrite", "redo_from", "stop_after", "progress"
 #: entries of another stage's section that only a later stage reads (free when that one is redone):
 #: the diffuser's sampling settings are used by the flow only
 STAGE_OWNED_KEYS = {"flow": (("diffuser", "sampler"), ("diffuser", "sample_steps"), ("diffuser", "guidance"),
-                              ("diffuser", "strength"), ("diffuser", "inpaint_start"), ("diffuser", "score_guidance"),
-                              ("diffuser", "score_guidance_hand_penalty"))}
+                              ("diffuser", "strength"), ("diffuser", "inpaint_start"), ("diffuser", "score_guidance"))}
 #: what each stage leaves under ``checkpoints/`` (removed by ``redo_from``); the path tracker depends on the
 #: dataset only (:func:`path_tracker`)
 STAGE_CHECKPOINTS = {"dataset": ("tracker.pt",), "labels": ("labels",), "score_model": ("score_model.pt",), "blocks": ("blocks.pt",),
@@ -144,8 +142,7 @@ def _comparable(cfg: DictConfig) -> dict:
 
 #: options added after runs were saved, with the value that reproduces the older behaviour
 _ADDED_OPTION_NOOPS = {"score_model.num_members": 1, "flow.ensemble_rule": "mean", "flow.filter": "score_model",
-                       "diffuser.strength": 1.0, "diffuser.score_guidance": 0.0,
-                       "diffuser.score_guidance_hand_penalty": 0.0}
+                       "diffuser.strength": 1.0, "diffuser.score_guidance": 0.0}
 
 
 #: options removed since runs were saved (a saved config may still hold them): session 31's two tracker_steps,
@@ -377,46 +374,19 @@ def diffuser_settings(cfg: DictConfig) -> dict:
                         sampler=d.sampler, sample_steps=d.sample_steps, guidance=d.guidance)
 
 
-def make_sampler(cfg, diffuser, model: ScoreModel, scores: torch.Tensor,
-                 hand_penalty: Callable[[TensorDictBase], torch.Tensor] | None = None) -> DiffusionSampler:
+def make_sampler(cfg, diffuser, model: ScoreModel, scores: torch.Tensor) -> DiffusionSampler:
     """The flow's sampler; with ``diffuser.score_guidance`` its samples are pushed up ``model``'s (ensemble-mean)
     score, on the dataset's normalised scale (``scores``: the dataset's). The guide's step is normalised, so the scale
-    changes nothing it samples; and it climbs s_psi whatever ``flow.filter`` and ``flow.ensemble_rule`` accept by.
-    With ``diffuser.score_guidance_hand_penalty`` mu the guide climbs ``s_hat - mu * hand_penalty`` instead
-    (:func:`guide_hand_penalty`, fitted on the dataset; Meta-World only)."""
+    changes nothing it samples; and it climbs s_psi whatever ``flow.filter`` and ``flow.ensemble_rule`` accept by."""
     s = diffuser_settings(cfg)
     # a generator (not ``seed=``): every flow step must draw fresh noise, reproducibly
     device = diffuser.normalizer.mean.device
     generator = torch.Generator(device=device).manual_seed(int(cfg.seed))
-    scale, mu = score_guidance(cfg), score_guidance_hand_penalty(cfg)
+    scale = score_guidance(cfg)
     guide = score_objective(model, float(scores.min()), float(scores.max())) if scale else None
-    if guide is not None and mu:
-        if hand_penalty is None:
-            raise ValueError("make_sampler: diffuser.score_guidance_hand_penalty needs the hand penalty fitted on "
-                             "the dataset (hand_penalty=guide_hand_penalty(cfg, data))")
-        guide = penalized_objective(guide, hand_penalty, mu)
     return DiffusionSampler(diffuser, sampler=s["sampler"], steps=s["sample_steps"], guidance=s["guidance"],
                             strength=sdedit_strength(cfg), inpaint_start=inpaint_start(cfg), generator=generator,
                             autocast_bf16=bool(cfg.diffuser.autocast_bf16), guide=guide, guide_scale=scale)
-
-
-def guide_hand_penalty(cfg: DictConfig, data: TensorDictBase) -> Callable[[TensorDictBase], torch.Tensor] | None:
-    """The hand penalty of ``diffuser.score_guidance_hand_penalty``, fitted on the dataset ``data``
-    (:func:`~torchrl_ftb.envs.metaworld_hand_penalty`); None when the option is 0. Called once the dataset is
-    loaded, so data it cannot fit fail before any training, with the option's name."""
-    if not score_guidance_hand_penalty(cfg):
-        return None
-    try:
-        return metaworld_hand_penalty(data)
-    except ValueError as err:
-        raise ValueError(f"diffuser.score_guidance_hand_penalty: {err}") from None
-
-
-def penalized_objective(objective: Callable[[TensorDictBase], torch.Tensor],
-                        penalty: Callable[[TensorDictBase], torch.Tensor],
-                        weight: float) -> Callable[[TensorDictBase], torch.Tensor]:
-    """``objective - weight * penalty``, both ``[N]`` per trajectory (a guide's objective with a cost)."""
-    return lambda trajs: objective(trajs) - weight * penalty(trajs)
 
 
 def score_guidance(cfg: DictConfig) -> float:
@@ -426,23 +396,6 @@ def score_guidance(cfg: DictConfig) -> float:
     return number_option(cfg, "diffuser.score_guidance", 0.0, within=lambda v: math.isfinite(v) and v >= 0,
                          expected="a number >= 0 (0: none, the paper; lambda: each sampler step also climbs s_psi's "
                                   "gradient)")
-
-
-def score_guidance_hand_penalty(cfg: DictConfig) -> float:
-    """``diffuser.score_guidance_hand_penalty`` mu >= 0: with score guidance on Meta-World, the guide's objective
-    also pays mu times the sample's hand-model error in units of the dataset's largest
-    (:func:`~torchrl_ftb.envs.metaworld_hand_penalty`), so climbing s_psi keeps the hand path one its actions
-    explain. 0 (default): s_psi alone. A clear error where it cannot act: no score guidance, or not Meta-World."""
-    mu = number_option(cfg, "diffuser.score_guidance_hand_penalty", 0.0, within=lambda v: math.isfinite(v) and v >= 0,
-                       expected="a number >= 0 (0: none; mu: the score guide also pays mu x the hand-model error "
-                                "in units of the dataset's largest)")
-    if mu and env_kind(cfg.env.name) != "metaworld":
-        raise ValueError(f"diffuser.score_guidance_hand_penalty is a Meta-World penalty (the hand model); "
-                         f"env.name={cfg.env.name!r} is {env_kind(cfg.env.name)}: leave it 0")
-    if mu and not score_guidance(cfg):
-        raise ValueError(f"diffuser.score_guidance_hand_penalty={mu}: weighs a cost inside score guidance; set "
-                         f"diffuser.score_guidance > 0 too")
-    return mu
 
 
 def number_option(cfg: DictConfig, key: str, default: float, *, within: Callable[[float], bool],
@@ -1070,7 +1023,6 @@ def run(cfg: DictConfig) -> dict:
                              f"no termination flag: leave it null")
     sdedit_strength(cfg)  # a malformed strength fails now, not after the diffuser's training
     score_guidance(cfg)
-    score_guidance_hand_penalty(cfg)
     pair_neighbours(cfg)
     top_block_pairs(cfg)
     try:  # the flow's numbers fail now, not after the diffuser's training
@@ -1150,7 +1102,6 @@ def run(cfg: DictConfig) -> dict:
                              f"{int(trajs.batch_size[0])} at {meta.get('path')}); start a new run_dir")
     if int(cfg.flow.top_k) > trajs.batch_size[0]:  # fails now, not at the flow stage
         raise ValueError(f"flow.top_k={cfg.flow.top_k} exceeds the dataset's {trajs.batch_size[0]} trajectories")
-    hand_penalty = guide_hand_penalty(cfg, trajs)  # fitted now: data it cannot fit fail before any training
     timed("dataset", t0)
     if (out := stopped("dataset")) is not None:
         return out
@@ -1212,7 +1163,7 @@ def run(cfg: DictConfig) -> dict:
     t0 = time.perf_counter()
     streak = cfg.flow.get("true_return_streak")
     reward_fn = true_reward_fn(cfg.env.name, with_success=streak is not None) if cfg.flow.true_reward else None
-    flow = stage_flow(cfg, run_dir, trajs, scores, block_ids, make_sampler(cfg, diffuser, model, scores, hand_penalty), model,
+    flow = stage_flow(cfg, run_dir, trajs, scores, block_ids, make_sampler(cfg, diffuser, model, scores), model,
                       reward_fn, logger)
     timed("flow", t0)
     partial_metrics.update(flow=dict(flow["summary"]), flow_stats=flow["stats"])

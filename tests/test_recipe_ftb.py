@@ -561,38 +561,13 @@ def test_sdedit_strength_inpaint_start_and_score_guidance_reach_the_flow_sampler
     for bad, shown in (("-1", "-1"), ("true", "True"), ("nan", "nan")):
         with pytest.raises(ValueError, match=f"diffuser.score_guidance={shown}: must be a number >= 0"):
             recipe.score_guidance(_cfg(tmp_path, f"diffuser.score_guidance={bad}"))
-    # diffuser.score_guidance_hand_penalty: a cost inside score guidance, Meta-World's hand model
-    pay = recipe.penalized_objective(lambda t: t["observation"].sum((-1, -2)), lambda t: t["action"].sum((-1, -2)), 2.0)
-    torch.testing.assert_close(pay(data[:2]), data[:2]["observation"].sum((-1, -2)) - 2 * data[:2]["action"].sum((-1, -2)))
-    assert recipe.score_guidance_hand_penalty(_cfg(tmp_path)) == 0.0
-    assert recipe.guide_hand_penalty(_cfg(tmp_path), data) is None  # nothing fitted at 0
-    with pytest.raises(ValueError, match="is a Meta-World penalty .* is toy: leave it 0"):
-        recipe.run(_cfg(tmp_path / "hp", "diffuser.score_guidance=0.3", "diffuser.score_guidance_hand_penalty=1"))
-    assert not (tmp_path / "hp").exists()  # refused before anything is written
-    with pytest.raises(ValueError, match="score_guidance_hand_penalty=1.0: weighs a cost inside score guidance"):
-        recipe.score_guidance_hand_penalty(_cfg(tmp_path, "env.name=button-press-v3",
-                                                "diffuser.score_guidance_hand_penalty=1"))
-    with pytest.raises(ValueError, match="score_guidance_hand_penalty=-1: must be a number >= 0"):
-        recipe.score_guidance_hand_penalty(_cfg(tmp_path, "diffuser.score_guidance_hand_penalty=-1"))
-    metaworld = _cfg(tmp_path, "env.name=button-press-v3", "diffuser.score_guidance=0.3",
-                     "diffuser.score_guidance_hand_penalty=2")
-    with pytest.raises(ValueError, match="needs the hand penalty"):
-        recipe.make_sampler(metaworld, diffuser, model, scores)
-    with pytest.raises(ValueError, match="diffuser.score_guidance_hand_penalty: .*has 3 dims"):
-        recipe.guide_hand_penalty(metaworld, data)  # toy data: the hand model's error names the option
-    fake_penalty = lambda t: t["action"].abs().sum((-1, -2))  # noqa: E731
-    paid = recipe.make_sampler(metaworld, diffuser, model, scores, fake_penalty)
-    assert paid.guide_scale == 0.3
-    with torch.no_grad():
-        torch.testing.assert_close(paid.guide(data), guided.guide(data) - 2 * fake_penalty(data))
 
 
 def test_options_added_later_resume_old_run_directories_at_their_no_op_defaults():
     """A run directory written before an option existed resumes when the option is at its no-op value."""
     recipe = _recipe()
     old = {"diffuser": {"guidance": None}, "flow": {"top_k": 8}, "score_model": {}}
-    new = {"diffuser": {"guidance": None, "strength": 1.0, "inpaint_start": False, "score_guidance": 0.0,
-                        "score_guidance_hand_penalty": 0.0}, "flow": {"top_k": 8, "filter": "score_model",
+    new = {"diffuser": {"guidance": None, "strength": 1.0, "inpaint_start": False, "score_guidance": 0.0}, "flow": {"top_k": 8, "filter": "score_model",
                                                                        "ensemble_rule": "mean"},
            "score_model": {"num_members": 1}}
     assert recipe._diff_keys(new, old) == []

@@ -48,7 +48,6 @@ __all__ = [
     "fit_metaworld_hand_model",
     "metaworld_hand_model_error",
     "metaworld_hand_model_check",
-    "metaworld_hand_penalty",
     "fit_metaworld_contact_reach",
     "metaworld_contactless_object_path",
     "metaworld_contact_check",
@@ -662,43 +661,6 @@ def metaworld_hand_model_check(weights: torch.Tensor, max_error: float) -> Calla
     """
     return _at_most(lambda trajectories: metaworld_hand_model_error(trajectories, weights), max_error,
                     what="max_error", name="metaworld_hand_model_check")
-
-
-def metaworld_hand_penalty(data: TensorDictBase) -> Callable[[TensorDictBase], torch.Tensor]:
-    """A differentiable physics penalty for guided sampling: ``[N]`` the hand-model error of a batch
-    (:func:`metaworld_hand_model_error`, the model fitted on ``data``) in units of its largest value over
-    ``data``'s own trajectories, so 1 is as inconsistent as the worst real trajectory.
-
-    Score guidance (:meth:`~torchrl_ftb.diffusion.TrajectoryDiffuser.objective_guide`) moves a sample's states,
-    the hand most, and leaves its actions: the hand then moves in ways its actions cannot explain and a closed-loop
-    reading leaves the path (BENCHMARKS #5, session 51). Subtracting ``mu`` times this penalty from the guide's
-    objective makes its gradient also pull the hand path and the actions back into agreement.
-
-    Example:
-        >>> import torch
-        >>> from tensordict import TensorDict
-        >>> obs, act = torch.zeros(1, 4, 39), torch.zeros(1, 4, 4)
-        >>> obs[0, :, 0], act[0, :, 0] = torch.arange(4) * 0.004, 0.4  # each step moves the hand by 4 mm
-        >>> obs[0, 3, 0] += 0.001  # the last by 5 mm
-        >>> data = TensorDict({"observation": obs, "action": act, "mask": torch.ones(1, 4, dtype=torch.bool)}, [1, 4])
-        >>> penalty = metaworld_hand_penalty(data)
-        >>> jump = data.clone()
-        >>> jump["observation"][0, 2, 0] += 0.01  # a 1 cm jump and back
-        >>> round(float(penalty(data)[0]), 3)  # the data's worst trajectory (here its only one) is 1
-        1.0
-        >>> bool(penalty(jump)[0] > 5)
-        True
-    """
-    weights = fit_metaworld_hand_model(data)
-    scale = float(metaworld_hand_model_error(data, weights).max())
-    if not scale > 0:
-        raise ValueError("metaworld_hand_penalty: the hand model fits the data exactly (largest error 0), so the "
-                         "penalty has no unit; give real trajectories")
-
-    def penalty(trajectories: TensorDictBase) -> torch.Tensor:
-        return metaworld_hand_model_error(trajectories, weights) / scale
-
-    return penalty
 
 
 def physics_limit(spec: float | str, real: torch.Tensor, *, field: str) -> float:

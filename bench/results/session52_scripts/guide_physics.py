@@ -23,8 +23,8 @@ sys.path.insert(0, str(ROOT / "bench"))
 from flow_diagnostics import load_run, sample_true_return  # noqa: E402
 
 from torchrl_ftb.diffusion import load_diffuser  # noqa: E402
-from torchrl_ftb.envs import (fit_metaworld_hand_model, metaworld_hand_model_error, metaworld_hand_penalty,  # noqa: E402
-                              metaworld_max_hand_step, true_reward_fn)
+from torchrl_ftb.envs import (fit_metaworld_hand_model, metaworld_hand_model_error, metaworld_max_hand_step,  # noqa: E402
+                              true_reward_fn)
 from torchrl_ftb.preference import load_score_model, normalized_scores, score_objective  # noqa: E402
 from torchrl_ftb.provenance import run_record, write_json  # noqa: E402
 
@@ -51,7 +51,8 @@ top = (ids == ids.max()).nonzero().squeeze(-1)[: args.conditions]
 cond = trajs[top]
 
 
-penalty = metaworld_hand_penalty(trajs)  # the recipe's diffuser.score_guidance_hand_penalty
+def penalty(td):  # session 52 tried this as a recipe option (45a5a61) and removed it after these readings
+    return metaworld_hand_model_error(td, weights) / e_data
 
 
 def objective_for(mu):
