@@ -72,6 +72,8 @@ from torchrl_ftb.envs import (
     env_kind,
     fit_metaworld_contact_reach,
     fit_metaworld_hand_model,
+    metaworld_closest_approach,
+    metaworld_penetration_check,
     make_env,
     metaworld_contact_check,
     metaworld_contactless_object_path,
@@ -482,15 +484,20 @@ def stage_diffuser(cfg, run: RunDir, trajs, scores, block_ids, obs_dim, act_dim,
 
 #: The flow's optional Meta-World physics checks (``flow.<key>``) and what each one checks, for errors.
 PHYSICS_LIMIT_KEYS = {"max_frame_stack_error": "stacked previous frame", "max_hand_model_error": "mocap hand",
-                      "max_contactless_object_path": "hand-object contact", "max_hand_step": "hand speed"}
+                      "max_contactless_object_path": "hand-object contact", "max_hand_step": "hand speed",
+                      "max_hand_penetration": "hand inside the object"}
+#: physics limits whose proxy is exactly 0 on real data by construction: metres only, as a multiple would reject all
+_ZERO_ON_DATA_LIMITS = {"max_frame_stack_error": "real data's frame-stack error is 0",
+                        "max_hand_penetration": "real data's penetration is 0 by definition (the data's closest "
+                                                "approach is the reference)"}
 
 
 def check_physics_limit_specs(f) -> None:
     """Raise a clear error for a malformed ``flow.max_*`` physics limit (see :func:`physical_validity_fn`)."""
     for key in PHYSICS_LIMIT_KEYS:
         spec = f.get(key)
-        if isinstance(spec, str) and key == "max_frame_stack_error":
-            raise ValueError(f"flow.{key}={spec!r}: give metres; real data's frame-stack error is 0, so a "
+        if isinstance(spec, str) and key in _ZERO_ON_DATA_LIMITS:
+            raise ValueError(f"flow.{key}={spec!r}: give metres; {_ZERO_ON_DATA_LIMITS[key]}, so a "
                              f"multiple of it would reject every sample")
         if spec is not None:
             physics_limit(spec, torch.ones(1), field=f"flow.{key}")
@@ -498,13 +505,13 @@ def check_physics_limit_specs(f) -> None:
 
 def physical_validity_fn(f, trajs) -> tuple[Callable[[TensorDictBase], torch.Tensor] | None, dict[str, float]]:
     """The flow's optional Meta-World physics checks (``flow.max_frame_stack_error``,
-    ``flow.max_hand_model_error``, ``flow.max_contactless_object_path``, ``flow.max_hand_step``; the
-    hand model and the hand's reach are fitted on the dataset), all of which must pass, and their
-    limits in metres.
+    ``flow.max_hand_model_error``, ``flow.max_contactless_object_path``, ``flow.max_hand_step``,
+    ``flow.max_hand_penetration``; the hand model, the hand's reach and its closest approach to the object are
+    fitted on the dataset), all of which must pass, and their limits in metres.
 
     The hand-model, contact and hand-step limits may be relative, ``"<f>x"``: ``f`` times the largest value
     of the proxy over the dataset's trajectories (:func:`torchrl_ftb.envs.physics_limit`). The
-    frame-stack limit is metres only (real data: exactly 0)."""
+    frame-stack and penetration limits are metres only (real data: exactly 0)."""
     check_physics_limit_specs(f)
     checks, limits = [], {}
     if f.get("max_frame_stack_error") is not None:
@@ -526,6 +533,12 @@ def physical_validity_fn(f, trajs) -> tuple[Callable[[TensorDictBase], torch.Ten
         limits["max_hand_step"] = physics_limit(f.max_hand_step, metaworld_max_hand_step(trajs),
                                                 field="flow.max_hand_step")
         checks.append(metaworld_hand_step_check(limits["max_hand_step"]))
+    if f.get("max_hand_penetration") is not None:
+        limits["max_hand_penetration"] = physics_limit(f.max_hand_penetration, torch.zeros(0),
+                                                       field="flow.max_hand_penetration")
+        closest = float(metaworld_closest_approach(trajs).min())
+        limits["closest_approach"] = closest  # the data's, the penetration's reference
+        checks.append(metaworld_penetration_check(closest, limits["max_hand_penetration"]))
     if not checks:
         return None, limits
     return (lambda samples: torch.stack([check(samples) for check in checks]).all(0)), limits

@@ -428,6 +428,17 @@ def test_physical_validity_checks_compose(report_rows):
         recipe.physical_validity_fn(cfg(None, "loose", None), data)
     with pytest.raises(ValueError, match="max_hand_step='fast'.*'<factor>x'"):
         recipe.physical_validity_fn(cfg(None, None, None, "fast"), data)
+    # flow.max_hand_penetration: the hand no closer to the object than the dataset's hand ever is (3 cm here)
+    inside = data.clone()
+    inside["observation"][1, 4, 0] += 0.025  # one step 5 mm from the object: 2.5 cm inside it
+    inside["observation"][2, 4, 0] += 0.004  # 4 mm closer than the data: within a 5 mm tolerance
+    deep = lambda depth: OmegaConf.create({"max_hand_penetration": depth})  # noqa: E731
+    fn, limits = recipe.physical_validity_fn(deep(0.005), data)
+    assert limits["closest_approach"] == pytest.approx(0.03, abs=1e-6) and limits["max_hand_penetration"] == 0.005
+    assert fn(inside).tolist() == [True, False, True, True]
+    assert recipe.physical_validity_fn(deep(0.0), data)[0](inside).tolist() == [True, False, False, True]
+    with pytest.raises(ValueError, match="max_hand_penetration='1x': give metres; real data's penetration is 0"):
+        recipe.physical_validity_fn(deep("1x"), data)
     # the recipe's validity analysis: the same proxies' means over the accepted samples, the dataset beside them
     v = recipe.metaworld_validity(samples, data)
     assert v["frame_stack_error_dataset"] == 0 and v["frame_stack_error_generated"] > 0

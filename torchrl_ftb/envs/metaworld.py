@@ -51,6 +51,9 @@ __all__ = [
     "fit_metaworld_contact_reach",
     "metaworld_contactless_object_path",
     "metaworld_contact_check",
+    "metaworld_closest_approach",
+    "metaworld_hand_penetration",
+    "metaworld_penetration_check",
     "metaworld_hand_steps",
     "metaworld_max_hand_step",
     "metaworld_hand_step_check",
@@ -788,6 +791,67 @@ def metaworld_contact_check(reach: float, max_path: float) -> Callable[[TensorDi
         raise ValueError(f"metaworld_contact_check: reach must be >= 0 metres, got {reach}")
     return _at_most(lambda trajectories: metaworld_contactless_object_path(trajectories, reach), max_path,
                     what="max_path", name="metaworld_contact_check")
+
+
+def metaworld_closest_approach(trajectories: TensorDictBase) -> torch.Tensor:
+    """``[N]`` the smallest hand-object distance (:func:`metaworld_hand_object_distance`) over each trajectory's
+    valid steps, in metres (``inf`` with none).
+
+    Example:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> obs = torch.zeros(1, 3, 39)
+        >>> obs[0, :, 4] = torch.tensor([0.2, 0.1, 0.05])  # the object 20, 10, then 5 cm from the hand
+        >>> td = TensorDict({"observation": obs, "mask": torch.ones(1, 3, dtype=torch.bool)}, [1, 3])
+        >>> [round(x, 3) for x in metaworld_closest_approach(td).tolist()]
+        [0.05]
+    """
+    obs, _ = _metaworld_steps(trajectories, "Meta-World closest approach")
+    dist = metaworld_hand_object_distance(obs.double())
+    return torch.where(trajectories.get("mask").bool(), dist, torch.inf).amin(-1).float()
+
+
+def metaworld_hand_penetration(trajectories: TensorDictBase, closest: float) -> torch.Tensor:
+    """``[N]`` metres by which each trajectory's hand comes closer to the object than ``closest`` (0 if never).
+
+    Calibrate ``closest`` on real data with :func:`metaworld_closest_approach` (its smallest value): the hand's
+    reference point cannot get nearer the object's than the bodies let it, so on real data the penetration is 0
+    by construction. A generated path that claims it is nearer puts the hand inside the object (a button, a
+    drawer's handle), where the simulator stops it: a closed-loop reading then leaves the path, and the claimed
+    return was never reachable (score guidance does this on button-press, BENCHMARKS #5, session 52).
+
+    Example:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> obs = torch.zeros(2, 3, 39)
+        >>> obs[:, :, 4] = 0.05
+        >>> obs[1, 2, 4] = 0.02  # the second hand ends 2 cm from the object's point
+        >>> td = TensorDict({"observation": obs, "mask": torch.ones(2, 3, dtype=torch.bool)}, [2, 3])
+        >>> [round(x, 3) for x in metaworld_hand_penetration(td, closest=0.04).tolist()]
+        [0.0, 0.02]
+    """
+    return (float(closest) - metaworld_closest_approach(trajectories)).clamp_min(0)
+
+
+def metaworld_penetration_check(closest: float, max_depth: float) -> Callable[[TensorDictBase], torch.Tensor]:
+    """A flow validity check: ``[N]`` True where the hand comes at most ``max_depth`` metres closer to the object
+    than ``closest`` (:func:`metaworld_hand_penetration`; ``closest`` from :func:`metaworld_closest_approach` on the
+    dataset, its smallest value).
+
+    Example:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> obs = torch.zeros(2, 3, 39)
+        >>> obs[:, :, 4] = 0.05
+        >>> obs[1, 2, 4] = 0.02
+        >>> td = TensorDict({"observation": obs, "mask": torch.ones(2, 3, dtype=torch.bool)}, [2, 3])
+        >>> metaworld_penetration_check(closest=0.04, max_depth=0.005)(td).tolist()
+        [True, False]
+    """
+    if not closest >= 0:
+        raise ValueError(f"metaworld_penetration_check: closest must be >= 0 metres, got {closest}")
+    return _at_most(lambda trajectories: metaworld_hand_penetration(trajectories, closest), max_depth,
+                    what="max_depth", name="metaworld_penetration_check")
 
 
 def metaworld_hand_steps(trajectories: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
