@@ -2,7 +2,9 @@
 (DDPM 20 steps, guidance 1.2, the run's diffuser, one noise seed) without and with score guidance lambda, and reports,
 per setting, the share of valid steps whose hand (obs[0:3]) lies outside the dataset's hand envelope (per axis,
 [min - 1 cm, max + 1 cm]) and by how far, the hand's distance to the object (obs[4:7]) against the dataset's smallest,
-the mean hand offset from the unguided sample with the same noise (per axis, cm), and the claimed stop-rule return.
+the mean hand offset from the unguided sample with the same noise (per axis, cm), the claimed stop-rule return, and
+the share of samples flow.max_hand_penetration=0 passes (the hand never closer to the object than the dataset's hand
+ever is) with the claimed return of those that pass and of those that fail.
 
 usage: python bench/results/session52_scripts/guide_envelope.py RUN_DIR OUT.json [--lambdas 0 0.1 0.3] [--conditions 32]
 """
@@ -18,7 +20,7 @@ sys.path.insert(0, str(ROOT / "bench"))
 from flow_diagnostics import load_run, sample_true_return  # noqa: E402
 
 from torchrl_ftb.diffusion import load_diffuser  # noqa: E402
-from torchrl_ftb.envs import true_reward_fn  # noqa: E402
+from torchrl_ftb.envs import metaworld_closest_approach, metaworld_hand_penetration, true_reward_fn  # noqa: E402
 from torchrl_ftb.preference import load_score_model, score_objective  # noqa: E402
 from torchrl_ftb.provenance import run_record, write_json  # noqa: E402
 
@@ -40,6 +42,7 @@ top = (ids == ids.max()).nonzero().squeeze(-1)[: args.conditions]
 real = trajs["observation"][trajs["mask"]]
 lo, hi = real[:, 0:3].amin(0) - 0.01, real[:, 0:3].amax(0) + 0.01
 reach_data = float((real[:, 0:3] - real[:, 4:7]).norm(dim=-1).min())
+closest = float(metaworld_closest_approach(trajs).min())
 rows, plain = [], None
 for lam in args.lambdas:
     s = diffuser.generate(trajs[top], sampler="ddpm", steps=20, guidance=1.2, generator=torch.Generator().manual_seed(0),
@@ -60,12 +63,17 @@ for lam in args.lambdas:
                                                  - s["observation"][s["mask"]][:, 4:7]).norm(dim=-1).min() * 100),
            "offset_from_unguided_cm_mean_xyz": [float(v) for v in offset.mean(0)],
            "offset_from_unguided_cm_abs_xyz": [float(v) for v in offset.abs().mean(0)]}
+    ok = metaworld_hand_penetration(s, closest) <= 0
+    row.update(pass_penetration_0=float(ok.double().mean()),
+               true_mean_passing=float(true[ok].mean()) if bool(ok.any()) else None,
+               true_mean_failing=float(true[~ok].mean()) if bool((~ok).any()) else None,
+               true_max_passing=float(true[ok].max()) if bool(ok.any()) else None)
     print({k: (round(v, 3) if isinstance(v, float) else [round(x, 3) for x in v] if isinstance(v, list) else v)
            for k, v in row.items()}, flush=True)
     rows.append(row)
 write_json(args.out, {**run_record(config={"run_dir": str(args.run), "conditions": len(top), "sampler": "ddpm",
                                            "steps": 20, "guidance": 1.2, "seed": 0, "lambdas": args.lambdas}),
                       "data": {"hand_low_cm": [float(v) * 100 for v in lo], "hand_high_cm": [float(v) * 100 for v in hi],
-                               "hand_object_distance_min_cm": reach_data * 100,
+                               "hand_object_distance_min_cm": reach_data * 100, "closest_approach_cm": closest * 100,
                                "true_max_data": float(returns.max())},
                       "rows": rows})
