@@ -50,7 +50,7 @@ def tracked(run: Path, *, horizon: int, tracker_steps: int, seed: int, progress:
             "inpaint_start": bool(cfg.diffuser.get("inpaint_start", False)), **out}
 
 
-SUMMARY_HEADER = ("| run | task, seed | samples start | generated in final set | tracker on the top-k: recorded → tracked "
+SUMMARY_HEADER = ("| run | task, seed | reading | samples start | generated in final set | tracker on the top-k: recorded → tracked "
                   "mean (hand off path, median) | generated: claimed → tracked (hand off path, median; tracks that "
                   "succeed) | mean: top-k → final, claimed / **tracked** | max: top-k → final, claimed / **tracked** | "
                   "off path (of generated): max → tracked max on path |")
@@ -66,6 +66,16 @@ def on_path(entry: dict) -> str:
             f"{t['true_return_max_after']:.0f}")
 
 
+def reading(entry: dict) -> str:
+    """How the file read its paths: ``"tracker"`` (the inverse-dynamics tracker alone; files before session 47
+    record nothing) or ``"shot C×R"`` (C candidates, each generated path read R times, ``, L-step`` lookahead)."""
+    shot = entry.get("shooting") or {}
+    if int(shot.get("candidates", 1)) < 2:
+        return "tracker"
+    look = int(shot.get("lookahead", 1))
+    return f"shot {int(shot['candidates'])}×{int(shot.get('readers', 1))}" + (f", {look}-step" if look > 1 else "")
+
+
 def summarize(paths: list[Path]) -> str:
     """One Markdown row (:data:`SUMMARY_HEADER`) per run of this bench's results files."""
     rows = [SUMMARY_HEADER, "|" + "---|" * (SUMMARY_HEADER.count(" | ") + 1)]
@@ -77,7 +87,7 @@ def summarize(paths: list[Path]) -> str:
             gen = (f"{g['claimed_stop_rule_mean']:.0f} → {g['tracked_stop_rule_mean']:.0f} ({cm(g['hand_deviation_median'])}; "
                    f"{100 * g['tracked_success_rate']:.0f}%)" if n else "—")
             rows.append(f"| {Path(run).parent.parent.name if Path(run).name.startswith('seed') else Path(run).name} | "
-                        f"{e['env']} s{e['seed']} | {'held' if e['inpaint_start'] else 'anywhere'} | {n} | "
+                        f"{e['env']} s{e['seed']} | {reading(e)} | {'held' if e['inpaint_start'] else 'anywhere'} | {n} | "
                         f"{f['recorded_mean']:.0f} → {f['tracked_mean']:.0f} ({cm(f['hand_deviation_median'])}) | {gen} | "
                         f"{c['true_return_mean_before']:.0f} → {c['true_return_mean_after']:.0f} / "
                         f"**{t['true_return_mean_before']:.0f} → {t['true_return_mean_after']:.0f}** | "

@@ -176,11 +176,14 @@ def test_tracked_replay_summary_reads_its_results_files(tmp_path):
     path = tmp_path / "t.json"
     path.write_text(json.dumps({"runs": {"/r/cell_x/drawer-open-v3/seed4": entry}}))
     rows = bench.summarize([path]).splitlines()
-    assert rows[2] == ("| cell_x | drawer-open-v3 s4 | held | 2 | 11 → 10 (1.4 cm) | 5 → 6 (2.0 cm; 50%) | "
+    assert rows[2] == ("| cell_x | drawer-open-v3 s4 | tracker | held | 2 | 11 → 10 (1.4 cm) | 5 → 6 (2.0 cm; 50%) | "
                        "11 → 13 / **10 → 12** | 42 → 42 / **40 → 41** | — |")  # a file from before session 32
     entry["generated"]["off_path"], entry["tracked_on_path"] = 1, summ(10, 11, 40, 40)
     path.write_text(json.dumps({"runs": {"/r/cell_x/drawer-open-v3/seed4": entry}}))
     assert bench.summarize([path]).splitlines()[2].endswith("/ **40 → 41** | 1 (of 2): 40 → 40 |")
+    entry["shooting"] = {"candidates": 4, "readers": 4, "lookahead": 1}  # the default reading since session 52
+    path.write_text(json.dumps({"runs": {"/r/cell_x/drawer-open-v3/seed4": entry}}))
+    assert "| drawer-open-v3 s4 | shot 4×4 | held |" in bench.summarize([path])
 
 
 def test_measure_runs_writes_after_every_run_with_its_provenance(tmp_path, capsys):
