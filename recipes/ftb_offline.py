@@ -144,7 +144,7 @@ def _comparable(cfg: DictConfig) -> dict:
 
 #: options added after runs were saved, with the value that reproduces the older behaviour
 _ADDED_OPTION_NOOPS = {"score_model.num_members": 1, "flow.ensemble_rule": "mean", "flow.filter": "score_model",
-                       "diffuser.strength": 1.0, "diffuser.score_guidance": 0.0}
+                       "diffuser.strength": 1.0, "diffuser.score_guidance": 0.0, "bc.keep_top_k": False}
 
 
 #: options removed since runs were saved (a saved config may still hold them): session 31's two tracker_steps,
@@ -730,6 +730,20 @@ def relabel_generated(cfg, run: RunDir, improved: TensorDictBase, generated: tor
     return tracker.relabel(improved, torch.as_tensor(generated).bool().cpu())
 
 
+def bc_trajectories(cfg: DictConfig, flow: dict) -> tuple[TensorDictBase, torch.Tensor]:
+    """What BC clones, and which of it is generated (``[N]`` bool): the flow's final set (the paper), or with
+    ``bc.keep_top_k`` the original top-k plus the final set's generated trajectories (the flow's samples as an
+    augmentation of the data it started from, which then stays in)."""
+    keys = ("observation", "action", "mask")
+    final, generated = flow["trajectories"].select(*keys), torch.as_tensor(flow["source_step"]).cpu() > 0
+    if not switch(cfg, "bc.keep_top_k"):
+        return final, generated
+    original = flow["original"].select(*keys)
+    return (torch.cat([original, final[generated]], 0),
+            torch.cat([torch.zeros(original.batch_size[0], dtype=torch.bool), torch.ones(int(generated.sum()),
+                                                                                       dtype=torch.bool)]))
+
+
 def stage_bc(cfg, run: RunDir, improved, device, logger):
     b = cfg.bc
     flat = trajectories_to_flat(improved.select("observation", "action", "mask"))
@@ -1038,6 +1052,7 @@ def run(cfg: DictConfig) -> dict:
     score_guidance(cfg)
     pair_neighbours(cfg)
     top_block_pairs(cfg)
+    switch(cfg, "bc.keep_top_k")  # a malformed switch fails now, not after the flow
     try:  # the flow's numbers fail now, not after the diffuser's training
         check_flow_options(**flow_options(cfg), num_members=1 if flow_filter(cfg) == "true_return"
                            else int(cfg.score_model.get("num_members", 1)))
@@ -1185,9 +1200,9 @@ def run(cfg: DictConfig) -> dict:
 
     # 7. BC -----------------------------------------------------------------------------
     t0 = time.perf_counter()
-    improved = flow["trajectories"]
+    improved, generated = bc_trajectories(cfg, flow)
     if not run_dir.done("bc"):
-        improved = relabel_generated(cfg, run_dir, improved, torch.as_tensor(flow["source_step"]) > 0, trajs)
+        improved = relabel_generated(cfg, run_dir, improved, generated, trajs)
     actor, bc_summary = stage_bc(cfg, run_dir, improved, device, logger)
     timed("bc", t0)
     partial_metrics["bc"] = bc_summary

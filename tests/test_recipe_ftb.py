@@ -574,6 +574,27 @@ def test_sdedit_strength_inpaint_start_and_score_guidance_reach_the_flow_sampler
             recipe.score_guidance(_cfg(tmp_path, f"diffuser.score_guidance={bad}"))
 
 
+def test_bc_keep_top_k_clones_the_top_k_plus_the_generated_samples(tmp_path):
+    """``bc.keep_top_k``: BC's data is the original top-k plus the final set's generated trajectories (each once),
+    with the generated ones flagged for ``bc.relabel_actions``; off (the paper), the final set as it is."""
+    from torchrl_ftb.testing import make_toy_dataset
+
+    recipe = _recipe()
+    data = make_toy_dataset(num_trajectories=6, horizon=8, seed=0)
+    original = data[:4].select("observation", "action", "mask")
+    final = torch.cat([original[[0, 2]], data[4:].select("observation", "action", "mask")], 0)
+    flow = {"trajectories": final, "original": original, "source_step": torch.tensor([0, 0, 2, 1])}
+    paper, generated = recipe.bc_trajectories(_cfg(tmp_path), flow)
+    assert paper is not None and torch.equal(paper["observation"], final["observation"])
+    assert generated.tolist() == [False, False, True, True]
+    kept, generated = recipe.bc_trajectories(_cfg(tmp_path, "bc.keep_top_k=true"), flow)
+    assert torch.equal(kept["observation"], torch.cat([original["observation"], data[4:]["observation"]]))
+    assert generated.tolist() == [False] * 4 + [True] * 2
+    with pytest.raises(ValueError, match="bc.keep_top_k='yes': must be true or false"):
+        recipe.run(_cfg(tmp_path / "k", "bc.keep_top_k=yes"))
+    assert not (tmp_path / "k").exists()
+
+
 def test_options_added_later_resume_old_run_directories_at_their_no_op_defaults():
     """A run directory written before an option existed resumes when the option is at its no-op value."""
     recipe = _recipe()
