@@ -72,9 +72,8 @@ from torchrl_ftb.envs import (
     env_kind,
     fit_metaworld_contact_reach,
     fit_metaworld_hand_model,
-    metaworld_closest_approach,
-    metaworld_penetration_check,
     make_env,
+    metaworld_closest_approach,
     metaworld_contact_check,
     metaworld_contactless_object_path,
     metaworld_frame_stack_check,
@@ -82,6 +81,7 @@ from torchrl_ftb.envs import (
     metaworld_hand_model_error,
     metaworld_hand_step_check,
     metaworld_max_hand_step,
+    metaworld_penetration_check,
     metaworld_physics_errors,
     normalized_score_fn,
     observation_layout,
@@ -739,9 +739,8 @@ def bc_trajectories(cfg: DictConfig, flow: dict) -> tuple[TensorDictBase, torch.
     if not switch(cfg, "bc.keep_top_k"):
         return final, generated
     original = flow["original"].select(*keys)
-    return (torch.cat([original, final[generated]], 0),
-            torch.cat([torch.zeros(original.batch_size[0], dtype=torch.bool), torch.ones(int(generated.sum()),
-                                                                                       dtype=torch.bool)]))
+    kept = torch.cat([original, final[generated]], 0)
+    return kept, torch.arange(kept.batch_size[0]) >= original.batch_size[0]
 
 
 def stage_bc(cfg, run: RunDir, improved, device, logger):
