@@ -743,23 +743,35 @@ def bc_trajectories(cfg: DictConfig, flow: dict) -> tuple[TensorDictBase, torch.
     return kept, torch.arange(kept.batch_size[0]) >= original.batch_size[0]
 
 
+def bc_seed(cfg: DictConfig) -> int:
+    """The seed of the BC actor's initialisation and batches: ``bc.seed``, or the run's ``seed`` when null (so BC
+    can be repeated on one flowed set to measure its own spread)."""
+    value = cfg.bc.get("seed")
+    if value is None:
+        return int(cfg.seed)
+    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+        raise ValueError(f"bc.seed must be null or a non-negative integer, got {value!r}")
+    return value
+
+
 def stage_bc(cfg, run: RunDir, improved, device, logger):
     b = cfg.bc
+    seed = bc_seed(cfg)
     flat = trajectories_to_flat(improved.select("observation", "action", "mask"))
-    torch.manual_seed(int(cfg.seed))
+    torch.manual_seed(seed)
     actor = make_bc_actor_for(flat, hidden=tuple(b.hidden), device=device)
     path = run.ckpt / "bc.pt"
     if run.done("bc"):
         load_bc_checkpoint(path, actor)
         return actor, run.stages["bc"]
-    buffer = make_transition_buffer(flat, batch_size=int(b.batch_size), seed=int(cfg.seed))
+    buffer = make_transition_buffer(flat, batch_size=int(b.batch_size), seed=seed)
     out = train_bc(
         actor, buffer, steps=int(b.steps), batch_size=int(b.batch_size), lr=float(b.lr),
-        weight_decay=float(b.weight_decay), seed=int(cfg.seed), logger=logger, progress=bool(cfg.progress),
+        weight_decay=float(b.weight_decay), seed=seed, logger=logger, progress=bool(cfg.progress),
         device=device, checkpoint_path=path, checkpoint_every=int(b.checkpoint_every), resume=run.resume,
     )
     summary = {"steps": out["steps"], "resumed_from": out["start_step"], "final_loss": out["loss"],
-               "num_transitions": int(flat.numel())}
+               "num_transitions": int(flat.numel()), "seed": seed}
     run.mark("bc", **summary)
     return actor, summary
 
@@ -1052,6 +1064,7 @@ def run(cfg: DictConfig) -> dict:
     pair_neighbours(cfg)
     top_block_pairs(cfg)
     switch(cfg, "bc.keep_top_k")  # a malformed switch fails now, not after the flow
+    bc_seed(cfg)
     try:  # the flow's numbers fail now, not after the diffuser's training
         check_flow_options(**flow_options(cfg), num_members=1 if flow_filter(cfg) == "true_return"
                            else int(cfg.score_model.get("num_members", 1)))

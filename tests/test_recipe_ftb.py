@@ -138,6 +138,16 @@ def test_kill_during_diffuser_training_then_resume_end_to_end(tmp_path):
         recipe.run(_cfg(run_dir, "resume=true", "redo_from=bc", "flow.threshold=1.01"))
     with pytest.raises(ValueError, match="not a stage"):
         recipe.run(_cfg(run_dir, "resume=true", "redo_from=sampling"))
+    # bc.seed: BC again on the same flowed set with another seed (the flow is loaded, not redone)
+    flow_mtime = (run_dir / "checkpoints" / "flow.pt").stat().st_mtime_ns
+    reseeded = recipe.run(_cfg(run_dir, "resume=true", "redo_from=bc", "flow.threshold=1.01", "diffuser.guidance=2.0",
+                               "flow.true_return_horizon=32", "bc.seed=7"))
+    assert (run_dir / "checkpoints" / "flow.pt").stat().st_mtime_ns == flow_mtime
+    assert reseeded["flow"] == redone["flow"] and redone["bc"]["seed"] == 0 and reseeded["bc"]["seed"] == 7
+    assert reseeded["bc"]["final_loss"] != redone["bc"]["final_loss"]
+    with pytest.raises(ValueError, match="bc.seed must be null or a non-negative integer, got -1"):
+        recipe.run(_cfg(tmp_path / "bad_seed", "bc.seed=-1"))
+    assert not (tmp_path / "bad_seed").exists()
 
     # accepted samples on an env with a one-step oracle (toy): their dynamics error beside the data's and an MLP
     # model's on held-out real transitions, by step in plots/validity_per_step.png
