@@ -79,6 +79,7 @@ from torchrl_ftb.envs import (
     metaworld_frame_stack_check,
     metaworld_hand_model_check,
     metaworld_hand_model_error,
+    metaworld_hand_penetration,
     metaworld_hand_step_check,
     metaworld_max_hand_step,
     metaworld_penetration_check,
@@ -548,7 +549,9 @@ def metaworld_validity(generated: TensorDictBase, data: TensorDictBase) -> dict[
     """Validity of the flow's accepted Meta-World samples (paper §4.3 scores it with an oracle
     dynamics model; Meta-World has none): the mean of the three physics proxies over the samples,
     beside the dataset's own as the reference (metres; hand model and reach fitted on the dataset),
-    and the largest one-step hand move of any sample beside the dataset's largest."""
+    the largest one-step hand move of any sample beside the dataset's largest, the closest hand-object
+    approach of any sample beside the dataset's, and the share of samples whose hand comes closer to the object
+    than the dataset's ever does (``flow.max_hand_penetration=0`` would reject them) with their mean depth."""
     hand_w = fit_metaworld_hand_model(data)
     try:
         reach = fit_metaworld_contact_reach(data)
@@ -560,6 +563,11 @@ def metaworld_validity(generated: TensorDictBase, data: TensorDictBase) -> dict[
         for proxy in METAWORLD_PHYSICS_PROXIES:
             out[f"{proxy}_{name}"] = float(errors[proxy].mean()) if proxy in errors else float("nan")
         out[f"max_hand_step_{name}"] = float(metaworld_max_hand_step(td).max()) if td.batch_size[0] else float("nan")
+        out[f"closest_approach_{name}"] = (float(metaworld_closest_approach(td).min()) if td.batch_size[0]
+                                           else float("nan"))
+    depth = metaworld_hand_penetration(generated, out["closest_approach_dataset"])
+    out["hand_penetration_share_generated"] = float((depth > 0).float().mean()) if depth.numel() else float("nan")
+    out["hand_penetration_depth_generated"] = float(depth[depth > 0].mean()) if bool((depth > 0).any()) else 0.0
     return out
 
 
@@ -990,6 +998,12 @@ def final_table(metrics: dict) -> list[tuple[str, str]]:
         if "max_hand_step_generated" in v:  # runs before session 32 did not record it
             rows.append(("accepted samples: largest one-step hand move, m (dataset)",
                          f"{_fmt(v['max_hand_step_generated'])} ({_fmt(v['max_hand_step_dataset'])})"))
+        if "closest_approach_generated" in v:  # runs before session 53 did not record it
+            rows.append(("accepted samples: closest hand-object approach, m (dataset); share closer than the "
+                         "dataset's hand ever comes, mean depth, m",
+                         f"{_fmt(v['closest_approach_generated'])} ({_fmt(v['closest_approach_dataset'])}); "
+                         f"{_fmt(v['hand_penetration_share_generated'])}, "
+                         f"{_fmt(v['hand_penetration_depth_generated'])}"))
     if "top_k_success" in metrics["score_quality"]:
         sq = metrics["score_quality"]
         if oracle and "top_k_success" in fl:  # the flow started from the oracle's top-k, not s_psi's

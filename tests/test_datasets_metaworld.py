@@ -475,6 +475,9 @@ def test_shooting_tracker_reproduces_recorded_paths_and_corrects_wrong_actions(t
     with pytest.raises(ValueError, match="needs shooting"):
         tracked_improvement(shifted, original, generated, td, meta, task=task, horizon=150, tracker=tracker,
                             readers=2)
+    with pytest.raises(ValueError, match="tracked_improvement: candidates=0: must be a whole number >= 1"):
+        tracked_improvement(shifted, original, generated, td, meta, task=task, horizon=150, tracker=tracker,
+                            candidates=0)
     # off path is judged against the tracker alone (shooting leaves real paths by nothing, generated ones by more)
     alone = tracked_improvement(final, original, torch.tensor([1, 1, 0, 0]) > 0, td, meta, task=task, horizon=150,
                                 tracker=tracker, original_rows=rows)

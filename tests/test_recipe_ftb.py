@@ -455,8 +455,16 @@ def test_physical_validity_checks_compose(report_rows):
     assert v["hand_model_error_generated"] > 10 * v["hand_model_error_dataset"]
     assert v["contactless_object_path_dataset"] < 0.01 < 0.04 < v["contactless_object_path_generated"]
     assert v["max_hand_step_dataset"] < 0.02 < 0.05 < v["max_hand_step_generated"]
+    assert v["closest_approach_dataset"] == pytest.approx(0.03, abs=1e-6)
+    assert v["hand_penetration_share_generated"] == 0.0 and v["hand_penetration_depth_generated"] == 0.0
+    pushed = recipe.metaworld_validity(inside[1:3], data)  # 2.5 cm and 4 mm inside the data's closest
+    assert pushed["closest_approach_generated"] == pytest.approx(0.005, abs=1e-6)
+    assert pushed["hand_penetration_share_generated"] == 1.0
+    assert pushed["hand_penetration_depth_generated"] == pytest.approx((0.025 + 0.004) / 2, abs=1e-6)
     rows = report_rows(recipe, analysis={"validity": v}, env="x")
     assert any(k.startswith("accepted samples: frame-stack") for k in rows)
+    assert rows["accepted samples: closest hand-object approach, m (dataset); share closer than the dataset's hand "
+                "ever comes, mean depth, m"].endswith("; 0, 0")
     still = data.clone()
     still["observation"][..., 4:7] = 0.0  # an object that never moves: no reach to fit, NaN instead of a failed run
     v = recipe.metaworld_validity(samples, still)

@@ -99,15 +99,17 @@ SHOOTING_READERS = 4
 
 
 def check_readers(readers: int | None, candidates: int) -> int:
-    """``readers`` as an int, checked against ``candidates`` (:func:`tracked_improvement`): >= 1, and more than one
-    reading needs shooting (``candidates > 1``; the tracker alone reads a path the same every time). ``None``:
-    :data:`SHOOTING_READERS` with shooting, else 1. A ``ValueError`` otherwise; callers prefix the option names
+    """``readers`` as an int, checked against ``candidates`` (a whole number >= 1; :func:`tracked_improvement`):
+    >= 1, and more than one reading needs shooting (``candidates > 1``; the tracker alone reads a path the same
+    every time). ``None``: :data:`SHOOTING_READERS` with shooting, else 1. A ``ValueError`` otherwise; callers prefix the option names
     they take.
 
     Example:
         >>> check_readers(None, 4), check_readers(None, 1), check_readers(2, 4)
         (4, 1, 2)
     """
+    if isinstance(candidates, bool) or not isinstance(candidates, int) or candidates < 1:
+        raise ValueError(f"candidates={candidates!r}: must be a whole number >= 1 (1: the tracker alone)")
     if readers is None:
         return SHOOTING_READERS if candidates > 1 else 1
     if readers < 1:
