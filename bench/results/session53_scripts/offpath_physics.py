@@ -4,8 +4,8 @@ hand deviation above the tracker-alone bound, as bench/tracked_replay.py counts 
 features read off the sample alone: the three physics proxies of bench/flow_generated.py (frame-stack error,
 hand-model error, contactless object path), the largest hand step, the closest hand-object approach, the share of
 valid steps whose hand / object lies outside the original top-k's box (per axis, +-1 cm), the object's total path,
-the mean and largest |action|, the share of clipped action entries (|a| > 1), and the start's distance to the nearest
-dataset start. Reports per feature the off-path and on-path medians and the AUC (the chance an off-path path's value
+the mean and largest |action|, the share of clipped action entries (|a| > 1), and the start's distance (max-abs) to the nearest
+original top-k start. Reports per feature the off-path and on-path medians and the AUC (the chance an off-path path's value
 exceeds an on-path one's; 0.5 = no signal, ties count half).
 
 usage: python bench/results/session53_scripts/offpath_physics.py OUT.json RUN_DIR=READERS.json [...]
@@ -75,7 +75,6 @@ def main() -> None:
         limit = entry["fidelity"]["tracker_alone_hand_deviation_max"]
         off = torch.tensor([max(s["hand_deviation_per_reader"]) > limit for s in entry["samples"]])
         ckpt, final, original, generated = load_flow_sets(run)
-        data = torch.load(run / "checkpoints" / "blocks.pt", weights_only=True)  # noqa: F841 (kept for symmetry)
         data_first = original["observation"][:, 0].float()
         feats = features(final, original, generated, ckpt, data_first)
         assert len(off) == int(generated.sum()), (len(off), int(generated.sum()))
