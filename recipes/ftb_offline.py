@@ -148,21 +148,23 @@ _ADDED_OPTION_NOOPS = {"score_model.num_members": 1, "flow.ensemble_rule": "mean
                        "diffuser.strength": 1.0, "diffuser.score_guidance": 0.0, "bc.keep_top_k": False}
 
 
-#: options removed since runs were saved (a saved config may still hold them): session 31's two tracker_steps,
-#: now the one ``tracker.steps``
-_REMOVED_OPTIONS = ("bc.tracker_steps",)
+#: options removed since runs were saved (a saved config may still hold them), with the saved value that resumes
+#: (``_ANY``: whatever it was): session 31's two tracker_steps, now the one ``tracker.steps``; session 52's hand-model
+#: penalty of the score guide, removed after it was measured not to help (a run that used it does not resume)
+_ANY = object()
+_REMOVED_OPTIONS = {"bc.tracker_steps": _ANY, "diffuser.score_guidance_hand_penalty": 0.0}
 
 
 def _diff_keys(a: Any, b: Any, prefix: str = "") -> list[str]:
     """Differences ``old -> new`` between config ``a`` (new) and ``b`` (saved); a key the saved
     config lacks matches an empty new value or its ``_ADDED_OPTION_NOOPS`` entry (an option
-    added later, left at its no-op default); a saved key in ``_REMOVED_OPTIONS`` is ignored."""
+    added later, left at its no-op default); a saved key in ``_REMOVED_OPTIONS`` is ignored at its listed value."""
     if isinstance(a, dict) and isinstance(b, dict):
         out = []
         for k in sorted(set(a) | set(b), key=str):
             out += _diff_keys(a.get(k, "<missing>"), b.get(k, "<missing>"), f"{prefix}{k}.")
         return out
-    if a == "<missing>" and prefix[:-1] in _REMOVED_OPTIONS:
+    if a == "<missing>" and _REMOVED_OPTIONS.get(prefix[:-1], "<none>") in (_ANY, b):
         return []
     if b == "<missing>" and (a is None or a is False or a == {} or a == []
                              or _ADDED_OPTION_NOOPS.get(prefix[:-1], "<none>") == a):

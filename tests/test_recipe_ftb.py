@@ -627,6 +627,10 @@ def test_options_added_later_resume_old_run_directories_at_their_no_op_defaults(
     old_s31, new_s32 = {"bc": {"steps": 5, "tracker_steps": 4000}}, {"bc": {"steps": 5}}
     assert recipe._diff_keys(new_s32, old_s31) == []
     assert recipe._diff_keys({"bc": {}}, old_s31) == ["bc.steps: 5 -> '<missing>'"]
+    # session 52's removed hand-model penalty resumes where it was off, not where a run used it
+    assert recipe._diff_keys({"diffuser": {}}, {"diffuser": {"score_guidance_hand_penalty": 0.0}}) == []
+    assert recipe._diff_keys({"diffuser": {}}, {"diffuser": {"score_guidance_hand_penalty": 0.1}}) == [
+        "diffuser.score_guidance_hand_penalty: 0.1 -> '<missing>'"]
 
 
 def test_resume_refuses_another_tracker_under_a_half_trained_relabelled_bc(tmp_path):
