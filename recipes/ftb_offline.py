@@ -109,6 +109,7 @@ from torchrl_ftb.preference import (
     make_query_labels,
     make_block_pair_buffer,
     make_blocks,
+    pessimistic_scores,
     score_objective,
     score_trajectories,
     top_k_mean,
@@ -119,6 +120,8 @@ from torchrl_ftb.provenance import git_commit, machine_info, make_logger, write_
 #: flow.filter: what ranks the top-k, accepts samples and ranks the final set (true_return: an oracle bound)
 FLOW_FILTERS = ("score_model", "true_return")
 STAGES = ("dataset", "labels", "score_model", "blocks", "diffuser", "flow", "bc", "eval")
+#: the score guide's own ensemble (``diffuser.score_guidance_members`` > 1), under ``checkpoints/``
+GUIDE_CHECKPOINT = "guide_score_model.pt"
 # config entries that may change between a killed run and its resume
 # (analysis: recomputed at every run's end, never checkpointed)
 RESUME_FREE_KEYS = ("resume", "overwrite", "redo_from", "stop_after", "progress", "logger", "device", "run_dir",
@@ -126,10 +129,12 @@ RESUME_FREE_KEYS = ("resume", "overwrite", "redo_from", "stop_after", "progress"
 #: entries of another stage's section that only a later stage reads (free when that one is redone):
 #: the diffuser's sampling settings are used by the flow only
 STAGE_OWNED_KEYS = {"flow": (("diffuser", "sampler"), ("diffuser", "sample_steps"), ("diffuser", "guidance"),
-                              ("diffuser", "strength"), ("diffuser", "inpaint_start"), ("diffuser", "score_guidance"))}
+                              ("diffuser", "strength"), ("diffuser", "inpaint_start"), ("diffuser", "score_guidance"),
+                              ("diffuser", "score_guidance_members"), ("diffuser", "score_guidance_kappa"))}
 #: what each stage leaves under ``checkpoints/`` (removed by ``redo_from``); the path tracker depends on the
-#: dataset only (:func:`path_tracker`)
-STAGE_CHECKPOINTS = {"dataset": ("tracker.pt",), "labels": ("labels",), "score_model": ("score_model.pt",), "blocks": ("blocks.pt",),
+#: dataset only (:func:`path_tracker`), the score guide's ensemble on the labels and s_psi's settings (:func:`flow_guide`)
+STAGE_CHECKPOINTS = {"dataset": ("tracker.pt",), "labels": ("labels",),
+                     "score_model": ("score_model.pt", GUIDE_CHECKPOINT), "blocks": ("blocks.pt",),
                      "diffuser": ("diffuser",), "flow": ("flow.pt",), "bc": ("bc.pt",)}
 
 
@@ -145,7 +150,8 @@ def _comparable(cfg: DictConfig) -> dict:
 
 #: options added after runs were saved, with the value that reproduces the older behaviour
 _ADDED_OPTION_NOOPS = {"score_model.num_members": 1, "flow.ensemble_rule": "mean", "flow.filter": "score_model",
-                       "diffuser.strength": 1.0, "diffuser.score_guidance": 0.0, "bc.keep_top_k": False}
+                       "diffuser.strength": 1.0, "diffuser.score_guidance": 0.0, "bc.keep_top_k": False,
+                       "diffuser.score_guidance_members": 1, "diffuser.score_guidance_kappa": 0.0}
 
 
 #: options removed since runs were saved (a saved config may still hold them), with the saved value that resumes
@@ -381,14 +387,17 @@ def diffuser_settings(cfg: DictConfig) -> dict:
 
 def make_sampler(cfg, diffuser, model: ScoreModel, scores: torch.Tensor) -> DiffusionSampler:
     """The flow's sampler; with ``diffuser.score_guidance`` its samples are pushed up ``model``'s (ensemble-mean)
-    score, on the dataset's normalised scale (``scores``: the dataset's). The guide's step is normalised, so the scale
-    changes nothing it samples; and it climbs s_psi whatever ``flow.filter`` and ``flow.ensemble_rule`` accept by."""
+    score, on the dataset's normalised scale (``scores``: the dataset's, as the guide reads them; :func:`flow_guide`
+    gives both), pessimistic by ``diffuser.score_guidance_kappa``. The guide's step is normalised, so the scale
+    changes nothing it samples; and it climbs its model whatever ``flow.filter`` and ``flow.ensemble_rule`` accept
+    by."""
     s = diffuser_settings(cfg)
     # a generator (not ``seed=``): every flow step must draw fresh noise, reproducibly
     device = diffuser.normalizer.mean.device
     generator = torch.Generator(device=device).manual_seed(int(cfg.seed))
     scale = score_guidance(cfg)
-    guide = score_objective(model, float(scores.min()), float(scores.max())) if scale else None
+    guide = (score_objective(model, float(scores.min()), float(scores.max()), kappa=score_guidance_kappa(cfg))
+             if scale else None)
     return DiffusionSampler(diffuser, sampler=s["sampler"], steps=s["sample_steps"], guidance=s["guidance"],
                             strength=sdedit_strength(cfg), inpaint_start=inpaint_start(cfg), generator=generator,
                             autocast_bf16=bool(cfg.diffuser.autocast_bf16), guide=guide, guide_scale=scale)
@@ -401,6 +410,57 @@ def score_guidance(cfg: DictConfig) -> float:
     return number_option(cfg, "diffuser.score_guidance", 0.0, within=lambda v: math.isfinite(v) and v >= 0,
                          expected="a number >= 0 (0: none, the paper; lambda: each sampler step also climbs s_psi's "
                                   "gradient)")
+
+
+def score_guidance_members(cfg: DictConfig) -> int:
+    """``diffuser.score_guidance_members``: 1 (default) guides by s_psi itself; M > 1 by an M-member ensemble of
+    score models trained on the run's labels with s_psi's settings (:func:`flow_guide`). Needs score guidance."""
+    value = OmegaConf.select(cfg, "diffuser.score_guidance_members", default=1)
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ValueError(f"diffuser.score_guidance_members={value!r}: must be a whole number >= 1 (1: s_psi itself)")
+    if value > 1 and not score_guidance(cfg):
+        raise ValueError(f"diffuser.score_guidance_members={value} guides nothing without diffuser.score_guidance > 0")
+    return value
+
+
+def score_guidance_kappa(cfg: DictConfig) -> float:
+    """``diffuser.score_guidance_kappa`` >= 0: the guide climbs its ensemble's mean minus kappa times the members'
+    spread (0: the mean). Needs score guidance and an ensemble (``diffuser.score_guidance_members`` > 1, or
+    ``score_model.num_members`` > 1 when the guide is s_psi)."""
+    kappa = number_option(cfg, "diffuser.score_guidance_kappa", 0.0, within=lambda v: math.isfinite(v) and v >= 0,
+                          expected="a number >= 0 (0: the ensemble's mean)")
+    if kappa and not score_guidance(cfg):
+        raise ValueError(f"diffuser.score_guidance_kappa={kappa:g} guides nothing without diffuser.score_guidance > 0")
+    members = (score_guidance_members(cfg) if score_guidance_members(cfg) > 1
+               else int(OmegaConf.select(cfg, "score_model.num_members", default=1)))
+    if kappa and members < 2:
+        raise ValueError(f"diffuser.score_guidance_kappa={kappa:g} needs an ensemble to be pessimistic over: set "
+                         f"diffuser.score_guidance_members > 1 (or score_model.num_members > 1)")
+    return kappa
+
+
+def flow_guide(cfg: DictConfig, run: RunDir, model: ScoreModel, scores: torch.Tensor, trajs: TensorDictBase,
+               labels: TensorDictBase, device) -> tuple[ScoreModel, torch.Tensor]:
+    """The score model the flow's sampler climbs (``diffuser.score_guidance``) and its values on the dataset (the
+    guide's span, pessimistic by ``diffuser.score_guidance_kappa``): s_psi itself, or with
+    ``diffuser.score_guidance_members`` = M > 1 an M-member ensemble trained on the run's labels with s_psi's
+    settings, once per run and member count (``checkpoints/guide_score_model.pt``). s_psi still ranks the
+    top-k, the blocks and the acceptance: the ensemble only steers the samples. One score model's gradient leads
+    into directions it rewards and the task does not (BENCHMARKS #5, session 53); an ensemble's bound does not
+    reward where its members disagree."""
+    members, kappa = score_guidance_members(cfg), score_guidance_kappa(cfg)
+    if not score_guidance(cfg) or (members == 1 and not kappa):
+        return model, scores
+    if members == 1:
+        return model, pessimistic_scores(model, trajs, kappa=kappa)
+    path = run.ckpt / GUIDE_CHECKPOINT
+    guide = load_score_model(path, map_location=device) if path.exists() else None
+    if guide is None or guide.num_members != members:
+        guide_cfg = OmegaConf.merge(cfg, {"score_model": {"num_members": members}})
+        guide = make_score_model(guide_cfg, trajs["observation"].shape[-1], trajs["action"].shape[-1], device)
+        fit_score_model(guide_cfg, guide, trajs, labels, device)
+        save_score_model(guide, path)
+    return guide, pessimistic_scores(guide, trajs, kappa=kappa)
 
 
 def number_option(cfg: DictConfig, key: str, default: float, *, within: Callable[[float], bool],
@@ -1077,6 +1137,7 @@ def run(cfg: DictConfig) -> dict:
                              f"no termination flag: leave it null")
     sdedit_strength(cfg)  # a malformed strength fails now, not after the diffuser's training
     score_guidance(cfg)
+    score_guidance_kappa(cfg)  # and its members
     pair_neighbours(cfg)
     top_block_pairs(cfg)
     switch(cfg, "bc.keep_top_k")  # a malformed switch fails now, not after the flow
@@ -1219,8 +1280,9 @@ def run(cfg: DictConfig) -> dict:
     t0 = time.perf_counter()
     streak = cfg.flow.get("true_return_streak")
     reward_fn = true_reward_fn(cfg.env.name, with_success=streak is not None) if cfg.flow.true_reward else None
-    flow = stage_flow(cfg, run_dir, trajs, scores, block_ids, make_sampler(cfg, diffuser, model, scores), model,
-                      reward_fn, logger)
+    guide_model, guide_scores = flow_guide(cfg, run_dir, model, scores, trajs, labels, device)
+    flow = stage_flow(cfg, run_dir, trajs, scores, block_ids, make_sampler(cfg, diffuser, guide_model, guide_scores),
+                      model, reward_fn, logger)
     timed("flow", t0)
     partial_metrics.update(flow=dict(flow["summary"]), flow_stats=flow["stats"])
     if (out := stopped("flow")) is not None:

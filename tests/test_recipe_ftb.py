@@ -592,6 +592,65 @@ def test_sdedit_strength_inpaint_start_and_score_guidance_reach_the_flow_sampler
             recipe.score_guidance(_cfg(tmp_path, f"diffuser.score_guidance={bad}"))
 
 
+def test_score_guidance_by_an_ensemble_and_its_pessimistic_bound(tmp_path):
+    """``diffuser.score_guidance_members`` = M > 1 guides by an M-member ensemble trained once on the run's labels
+    (kept beside s_psi, loaded again, retrained when M changes); ``diffuser.score_guidance_kappa`` climbs the members'
+    mean minus kappa times their spread, on its own dataset span; bad settings are refused by name."""
+    from types import SimpleNamespace
+
+    from torchrl_ftb.data.labels import ReturnTeacher, make_scripted_labels
+    from torchrl_ftb.diffusion import make_diffuser
+    from torchrl_ftb.preference import ScoreModel, pessimistic_scores, score_objective, score_trajectories
+    from torchrl_ftb.testing import make_toy_dataset
+
+    recipe = _recipe()
+    full = make_toy_dataset(num_trajectories=12, horizon=16, seed=0)
+    data = full.select("observation", "action", "mask")
+    labels = make_scripted_labels(full, num_pairs=10, teacher=ReturnTeacher(), seed=0)
+    model = ScoreModel(data["observation"].shape[-1], data["action"].shape[-1], num_cells=8, seed=0)
+    scores = score_trajectories(model, data)
+    run = SimpleNamespace(ckpt=tmp_path / "checkpoints")
+    run.ckpt.mkdir()
+    cfg = lambda *o: _cfg(tmp_path, "diffuser.score_guidance=0.3", "score_model.steps=20", *o)  # noqa: E731
+    same, span = recipe.flow_guide(cfg(), run, model, scores, data, labels, "cpu")
+    assert same is model and span is scores and not (run.ckpt / recipe.GUIDE_CHECKPOINT).exists()
+    guide, span = recipe.flow_guide(cfg("diffuser.score_guidance_members=3", "diffuser.score_guidance_kappa=1"),
+                                    run, model, scores, data, labels, "cpu")
+    path = run.ckpt / recipe.GUIDE_CHECKPOINT
+    assert guide is not model and guide.num_members == 3 and path.is_file()
+    members = score_trajectories(guide, data, members=True)
+    assert float(members.std(0).min()) > 0  # members trained apart
+    torch.testing.assert_close(span, members.mean(0) - members.std(0))
+    assert bool((span < score_trajectories(guide, data)).all())
+    written = path.stat().st_mtime_ns
+    again, _ = recipe.flow_guide(cfg("diffuser.score_guidance_members=3"), run, model, scores, data, labels, "cpu")
+    assert path.stat().st_mtime_ns == written  # loaded, not retrained
+    torch.testing.assert_close(score_trajectories(again, data), score_trajectories(guide, data))
+    two, _ = recipe.flow_guide(cfg("diffuser.score_guidance_members=2"), run, model, scores, data, labels, "cpu")
+    assert two.num_members == 2 and path.stat().st_mtime_ns != written
+    # the sampler's objective is the bound on its dataset span: the dataset spans [0, 1]
+    diffuser = make_diffuser("tiny", obs_dim=data["observation"].shape[-1], action_dim=data["action"].shape[-1],
+                             horizon=16, data=data, hidden_dim=16, cond_dim=16)
+    sampler = recipe.make_sampler(cfg("diffuser.score_guidance_members=3", "diffuser.score_guidance_kappa=1"),
+                                  diffuser, guide, span)
+    with torch.no_grad():
+        hat = sampler.guide(data)
+    assert abs(float(hat.min())) < 1e-5 and abs(float(hat.max()) - 1.0) < 1e-5
+    torch.testing.assert_close(pessimistic_scores(guide, data, kappa=0.0), score_trajectories(guide, data))
+    with pytest.raises(ValueError, match="kappa=1.0 needs an ensemble"):
+        score_objective(model, 0.0, 1.0, kappa=1.0)
+    for overrides, message in (
+            (("diffuser.score_guidance_kappa=1",), "diffuser.score_guidance_kappa=1 needs an ensemble"),
+            (("diffuser.score_guidance_members=0",), "diffuser.score_guidance_members=0: must be a whole number"),
+            (("diffuser.score_guidance_kappa=-1",), "diffuser.score_guidance_kappa=-1: must be a number >= 0"),
+            (("diffuser.score_guidance=0", "diffuser.score_guidance_members=3"), "guides nothing without")):
+        with pytest.raises(ValueError, match=message):
+            recipe.run(cfg(*overrides, f"run_dir={tmp_path / 'bad'}"))
+        assert not (tmp_path / "bad").exists()
+    # s_psi's own ensemble may be the guide's
+    assert recipe.score_guidance_kappa(cfg("score_model.num_members=2", "diffuser.score_guidance_kappa=0.5")) == 0.5
+
+
 def test_bc_keep_top_k_clones_the_top_k_plus_the_generated_samples(tmp_path):
     """``bc.keep_top_k``: BC's data is the original top-k plus the final set's generated trajectories (each once),
     with the generated ones flagged for ``bc.relabel_actions``; off (the paper), the final set as it is."""

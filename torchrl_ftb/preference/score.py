@@ -30,6 +30,7 @@ Example:
 from __future__ import annotations
 
 import copy
+import math
 import os
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -437,10 +438,48 @@ def score_trajectories(
     return out.to(trajs.get("mask").device)
 
 
-def score_objective(model: ScoreModel, s_min: float, s_max: float) -> Callable[[TensorDictBase], torch.Tensor]:
+def _pessimistic(per_member: torch.Tensor, kappa: float) -> torch.Tensor:
+    """``mean - kappa * std`` over the members (dim 0) of ``[C, N]`` scores; ``kappa = 0``: the mean."""
+    return per_member.mean(0) - kappa * per_member.std(0) if kappa else per_member.mean(0)
+
+
+def _check_kappa(model: ScoreModel, kappa: float, where: str) -> float:
+    kappa = float(kappa)
+    if not (math.isfinite(kappa) and kappa >= 0):
+        raise ValueError(f"{where}: kappa must be a finite number >= 0, got {kappa}")
+    if kappa and model.num_members < 2:
+        raise ValueError(f"{where}: kappa={kappa} needs an ensemble (num_members > 1; the spread over members is "
+                         f"what it subtracts), got num_members={model.num_members}")
+    return kappa
+
+
+def pessimistic_scores(model: ScoreModel, trajs: TensorDictBase, *, kappa: float = 0.0,
+                       batch_size: int = 1024) -> torch.Tensor:
+    """``[N]`` ensemble scores of an ``[N, H]`` batch, pessimistic by ``kappa``: the members' mean minus ``kappa``
+    times their standard deviation (a lower confidence bound; ``kappa = 0``: :func:`score_trajectories`). No
+    gradients; the span :func:`score_objective` normalises by.
+
+    Example:
+        >>> from torchrl_ftb.testing import make_toy_dataset
+        >>> trajs = make_toy_dataset(num_trajectories=6, horizon=8)
+        >>> model = ScoreModel(3, 2, num_cells=8, num_members=3)
+        >>> bool((pessimistic_scores(model, trajs, kappa=1.0) <= score_trajectories(model, trajs)).all())
+        True
+    """
+    kappa = _check_kappa(model, kappa, "pessimistic_scores")
+    return _pessimistic(score_trajectories(model, trajs, batch_size=batch_size, members=True), kappa)
+
+
+def score_objective(model: ScoreModel, s_min: float, s_max: float, *,
+                    kappa: float = 0.0) -> Callable[[TensorDictBase], torch.Tensor]:
     """A differentiable objective for guided sampling: an ``[N, H]`` batch's :func:`normalized_scores`
     (``s_min -> 0``, ``s_max -> 1``, e.g. the dataset's; the flow's acceptance scale), differentiable in the
     batch's observations and actions (:meth:`TrajectoryDiffuser.generate`'s ``guide``).
+
+    With ``kappa > 0`` (an ensemble only) the objective is pessimistic: the members' mean minus ``kappa`` times
+    their spread (:func:`pessimistic_scores`, whose values on the dataset give ``s_min`` / ``s_max``). A guide
+    climbing one score model finds directions that model rewards and the task need not (BENCHMARKS #5,
+    session 53); members trained apart disagree there, and the bound does not reward the disagreement.
 
     Example:
         >>> from torchrl_ftb.testing import make_toy_dataset
@@ -451,10 +490,12 @@ def score_objective(model: ScoreModel, s_min: float, s_max: float) -> Callable[[
     """
     s_min, s_max = float(s_min), float(s_max)
     normalized_scores(torch.tensor([s_min]), s_min, s_max)  # its span check, now rather than at the first step
+    kappa = _check_kappa(model, kappa, "score_objective")
 
     def objective(trajs: TensorDictBase) -> torch.Tensor:
         home = trajs.get("mask").device
-        return normalized_scores(model.score(trajs.to(model.gamma.device)), s_min, s_max).to(home)
+        per_member = model.score(trajs.to(model.gamma.device), members=True)
+        return normalized_scores(_pessimistic(per_member, kappa), s_min, s_max).to(home)
 
     return objective
 
