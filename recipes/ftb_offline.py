@@ -130,9 +130,11 @@ RESUME_FREE_KEYS = ("resume", "overwrite", "redo_from", "stop_after", "progress"
 #: the diffuser's sampling settings are used by the flow only
 STAGE_OWNED_KEYS = {"flow": (("diffuser", "sampler"), ("diffuser", "sample_steps"), ("diffuser", "guidance"),
                               ("diffuser", "strength"), ("diffuser", "inpaint_start"), ("diffuser", "score_guidance"),
-                              ("diffuser", "score_guidance_members"), ("diffuser", "score_guidance_kappa"))}
+                              ("diffuser", "score_guidance_members"), ("diffuser", "score_guidance_kappa"),
+                              ("diffuser", "score_guidance_hand_penalty"))}  # the last: removed, old runs
 #: what each stage leaves under ``checkpoints/`` (removed by ``redo_from``); the path tracker depends on the
-#: dataset only (:func:`path_tracker`), the score guide's ensemble on the labels and s_psi's settings (:func:`flow_guide`)
+#: dataset only (:func:`path_tracker`), the score guide's ensemble on the labels and s_psi's settings
+#: (:func:`flow_guide`)
 STAGE_CHECKPOINTS = {"dataset": ("tracker.pt",), "labels": ("labels",),
                      "score_model": ("score_model.pt", GUIDE_CHECKPOINT), "blocks": ("blocks.pt",),
                      "diffuser": ("diffuser",), "flow": ("flow.pt",), "bc": ("bc.pt",)}
@@ -154,10 +156,11 @@ _ADDED_OPTION_NOOPS = {"score_model.num_members": 1, "flow.ensemble_rule": "mean
                        "diffuser.score_guidance_members": 1, "diffuser.score_guidance_kappa": 0.0}
 
 
+_ANY = object()
 #: options removed since runs were saved (a saved config may still hold them), with the saved value that resumes
 #: (``_ANY``: whatever it was): session 31's two tracker_steps, now the one ``tracker.steps``; session 52's hand-model
-#: penalty of the score guide, removed after it was measured not to help (a run that used it does not resume)
-_ANY = object()
+#: penalty of the score guide, removed after it was measured not to help (a run that used it resumes only with
+#: ``redo_from=flow`` or earlier, the stage that read it)
 _REMOVED_OPTIONS = {"bc.tracker_steps": _ANY, "diffuser.score_guidance_hand_penalty": 0.0}
 
 
@@ -385,22 +388,19 @@ def diffuser_settings(cfg: DictConfig) -> dict:
                         sampler=d.sampler, sample_steps=d.sample_steps, guidance=d.guidance)
 
 
-def make_sampler(cfg, diffuser, model: ScoreModel, scores: torch.Tensor) -> DiffusionSampler:
-    """The flow's sampler; with ``diffuser.score_guidance`` its samples are pushed up ``model``'s (ensemble-mean)
-    score, on the dataset's normalised scale (``scores``: the dataset's, as the guide reads them; :func:`flow_guide`
-    gives both), pessimistic by ``diffuser.score_guidance_kappa``. The guide's step is normalised, so the scale
-    changes nothing it samples; and it climbs its model whatever ``flow.filter`` and ``flow.ensemble_rule`` accept
-    by."""
+def make_sampler(cfg, diffuser, guide: Callable[[TensorDictBase], torch.Tensor] | None) -> DiffusionSampler:
+    """The flow's sampler; with ``diffuser.score_guidance`` its samples are pushed up ``guide`` (:func:`flow_guide`;
+    None: no guide) by that scale. The guide's step is normalised, so the objective's scale changes nothing it
+    samples; and it climbs its objective whatever ``flow.filter`` and ``flow.ensemble_rule`` accept by."""
     s = diffuser_settings(cfg)
     # a generator (not ``seed=``): every flow step must draw fresh noise, reproducibly
     device = diffuser.normalizer.mean.device
     generator = torch.Generator(device=device).manual_seed(int(cfg.seed))
-    scale = score_guidance(cfg)
-    guide = (score_objective(model, float(scores.min()), float(scores.max()), kappa=score_guidance_kappa(cfg))
-             if scale else None)
+    scale = score_guidance(cfg) if guide is not None else 0.0
     return DiffusionSampler(diffuser, sampler=s["sampler"], steps=s["sample_steps"], guidance=s["guidance"],
                             strength=sdedit_strength(cfg), inpaint_start=inpaint_start(cfg), generator=generator,
-                            autocast_bf16=bool(cfg.diffuser.autocast_bf16), guide=guide, guide_scale=scale)
+                            autocast_bf16=bool(cfg.diffuser.autocast_bf16), guide=guide if scale else None,
+                            guide_scale=scale)
 
 
 def score_guidance(cfg: DictConfig) -> float:
@@ -420,6 +420,9 @@ def score_guidance_members(cfg: DictConfig) -> int:
         raise ValueError(f"diffuser.score_guidance_members={value!r}: must be a whole number >= 1 (1: s_psi itself)")
     if value > 1 and not score_guidance(cfg):
         raise ValueError(f"diffuser.score_guidance_members={value} guides nothing without diffuser.score_guidance > 0")
+    if value > 1 and value == int(OmegaConf.select(cfg, "score_model.num_members", default=1)):
+        raise ValueError(f"diffuser.score_guidance_members={value} equals score_model.num_members: with s_psi's "
+                         f"settings and seed the guide would be s_psi retrained; set it to 1 (s_psi itself)")
     return value
 
 
@@ -431,8 +434,8 @@ def score_guidance_kappa(cfg: DictConfig) -> float:
                           expected="a number >= 0 (0: the ensemble's mean)")
     if kappa and not score_guidance(cfg):
         raise ValueError(f"diffuser.score_guidance_kappa={kappa:g} guides nothing without diffuser.score_guidance > 0")
-    members = (score_guidance_members(cfg) if score_guidance_members(cfg) > 1
-               else int(OmegaConf.select(cfg, "score_model.num_members", default=1)))
+    members = score_guidance_members(cfg)
+    members = members if members > 1 else int(OmegaConf.select(cfg, "score_model.num_members", default=1))
     if kappa and members < 2:
         raise ValueError(f"diffuser.score_guidance_kappa={kappa:g} needs an ensemble to be pessimistic over: set "
                          f"diffuser.score_guidance_members > 1 (or score_model.num_members > 1)")
@@ -440,27 +443,37 @@ def score_guidance_kappa(cfg: DictConfig) -> float:
 
 
 def flow_guide(cfg: DictConfig, run: RunDir, model: ScoreModel, scores: torch.Tensor, trajs: TensorDictBase,
-               labels: TensorDictBase, device) -> tuple[ScoreModel, torch.Tensor]:
-    """The score model the flow's sampler climbs (``diffuser.score_guidance``) and its values on the dataset (the
-    guide's span, pessimistic by ``diffuser.score_guidance_kappa``): s_psi itself, or with
+               labels: TensorDictBase, device) -> tuple[Callable[[TensorDictBase], torch.Tensor] | None, dict]:
+    """The objective the flow's sampler climbs with ``diffuser.score_guidance`` (None without) and a summary of the
+    guide's own ensemble (empty when the guide is s_psi).
+
+    The objective is a score model's score on the dataset's normalised scale (:func:`score_objective`; ``scores``:
+    s_psi's on the dataset), pessimistic by ``diffuser.score_guidance_kappa``. The model is s_psi itself, or with
     ``diffuser.score_guidance_members`` = M > 1 an M-member ensemble trained on the run's labels with s_psi's
-    settings, once per run and member count (``checkpoints/guide_score_model.pt``). s_psi still ranks the
+    settings, kept in ``checkpoints/guide_score_model.pt`` for the last member count (loaded onto ``device``,
+    retrained when the count changes; ``redo_from=score_model`` or earlier removes it). s_psi still ranks the
     top-k, the blocks and the acceptance: the ensemble only steers the samples. One score model's gradient leads
     into directions it rewards and the task does not (BENCHMARKS #5, session 53); an ensemble's bound does not
     reward where its members disagree."""
+    if not score_guidance(cfg):
+        return None, {}
     members, kappa = score_guidance_members(cfg), score_guidance_kappa(cfg)
-    if not score_guidance(cfg) or (members == 1 and not kappa):
-        return model, scores
-    if members == 1:
-        return model, pessimistic_scores(model, trajs, kappa=kappa)
-    path = run.ckpt / GUIDE_CHECKPOINT
-    guide = load_score_model(path, map_location=device) if path.exists() else None
-    if guide is None or guide.num_members != members:
+    guide, summary = model, {}
+    if members > 1:
         guide_cfg = OmegaConf.merge(cfg, {"score_model": {"num_members": members}})
         guide = make_score_model(guide_cfg, trajs["observation"].shape[-1], trajs["action"].shape[-1], device)
-        fit_score_model(guide_cfg, guide, trajs, labels, device)
-        save_score_model(guide, path)
-    return guide, pessimistic_scores(guide, trajs, kappa=kappa)
+        path = run.ckpt / GUIDE_CHECKPOINT
+        summary = {"members": members, "kappa": kappa}
+        try:
+            load_score_model(path, model=guide, map_location=device)
+            summary["trained"] = False
+        except (FileNotFoundError, ValueError):  # none yet, or another member count: train it
+            out = fit_score_model(guide_cfg, guide, trajs, labels, device)
+            save_score_model(guide, path)
+            summary.update(trained=True, **{k: v for k, v in out.items()
+                                            if isinstance(v, (int, float)) and math.isfinite(v)})
+    span = scores if guide is model and not kappa else pessimistic_scores(guide, trajs, kappa=kappa)
+    return score_objective(guide, float(span.min()), float(span.max()), kappa=kappa), summary
 
 
 def number_option(cfg: DictConfig, key: str, default: float, *, within: Callable[[float], bool],
@@ -629,7 +642,8 @@ def metaworld_validity(generated: TensorDictBase, data: TensorDictBase) -> dict[
                                            else float("nan"))
     depth = metaworld_hand_penetration(generated, out["closest_approach_dataset"])
     out["hand_penetration_share_generated"] = float((depth > 0).float().mean()) if depth.numel() else float("nan")
-    out["hand_penetration_depth_generated"] = float(depth[depth > 0].mean()) if bool((depth > 0).any()) else 0.0
+    out["hand_penetration_depth_generated"] = (float("nan") if not depth.numel() else
+                                               float(depth[depth > 0].mean()) if bool((depth > 0).any()) else 0.0)
     return out
 
 
@@ -820,7 +834,7 @@ def bc_seed(cfg: DictConfig) -> int:
     if value is None:
         return int(cfg.seed)
     if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-        raise ValueError(f"bc.seed must be null or a non-negative integer, got {value!r}")
+        raise ValueError(f"bc.seed={value!r}: must be a whole number >= 0, or null (the run's seed)")
     return value
 
 
@@ -1280,9 +1294,14 @@ def run(cfg: DictConfig) -> dict:
     t0 = time.perf_counter()
     streak = cfg.flow.get("true_return_streak")
     reward_fn = true_reward_fn(cfg.env.name, with_success=streak is not None) if cfg.flow.true_reward else None
-    guide_model, guide_scores = flow_guide(cfg, run_dir, model, scores, trajs, labels, device)
-    flow = stage_flow(cfg, run_dir, trajs, scores, block_ids, make_sampler(cfg, diffuser, guide_model, guide_scores),
-                      model, reward_fn, logger)
+    guide, guide_summary = ((None, {}) if run_dir.done("flow")  # loaded, not sampled
+                            else flow_guide(cfg, run_dir, model, scores, trajs, labels, device))
+    if guide_summary:  # the guide's own ensemble, timed apart from the flow
+        partial_metrics["guide"] = guide_summary
+        timed("guide", t0)
+        t0 = time.perf_counter()
+    flow = stage_flow(cfg, run_dir, trajs, scores, block_ids, make_sampler(cfg, diffuser, guide), model, reward_fn,
+                      logger)
     timed("flow", t0)
     partial_metrics.update(flow=dict(flow["summary"]), flow_stats=flow["stats"])
     if (out := stopped("flow")) is not None:
@@ -1364,6 +1383,7 @@ def run(cfg: DictConfig) -> dict:
         "eval": ev, "flow": summary, "flow_filter": flow_filter(cfg), "flow_stats": flow["stats"],
         "score_quality": quality,
         "diffuser": diffuser_summary, "bc": bc_summary, "analysis": analysis,
+        **({"guide": partial_metrics["guide"]} if "guide" in partial_metrics else {}),
         "stage_time_s": timings, "wall_time_s": time.perf_counter() - t_start,
         "git_commit": git_commit(), "machine": machine_info(),
         "command": " ".join(sys.argv), "run_dir": str(run_dir.path),

@@ -145,7 +145,7 @@ def test_kill_during_diffuser_training_then_resume_end_to_end(tmp_path):
     assert (run_dir / "checkpoints" / "flow.pt").stat().st_mtime_ns == flow_mtime
     assert reseeded["flow"] == redone["flow"] and redone["bc"]["seed"] == 0 and reseeded["bc"]["seed"] == 7
     assert reseeded["bc"]["final_loss"] != redone["bc"]["final_loss"]
-    with pytest.raises(ValueError, match="bc.seed must be null or a non-negative integer, got -1"):
+    with pytest.raises(ValueError, match="bc.seed=-1: must be a whole number >= 0, or null"):
         recipe.run(_cfg(tmp_path / "bad_seed", "bc.seed=-1"))
     assert not (tmp_path / "bad_seed").exists()
 
@@ -184,6 +184,20 @@ def test_kill_during_diffuser_training_then_resume_end_to_end(tmp_path):
         recipe.run(_cfg(tmp_path / "oracle", "flow.filter=true_return", "flow.true_reward=false"))
     assert not (tmp_path / "oracle").exists()
 
+    # score guidance by its own 2-member ensemble, pessimistic: trained once beside s_psi, reused when only the
+    # flow's settings change (redo_from=flow), removed with s_psi (redo_from=score_model, below)
+    guide_kw = ("diffuser.score_guidance=0.3", "diffuser.score_guidance_members=2")
+    guided = recipe.run(_cfg(run_dir, "resume=true", "redo_from=flow", *flow_kw, *guide_kw,
+                             "diffuser.score_guidance_kappa=1"))
+    guide_ckpt = run_dir / "checkpoints" / "guide_score_model.pt"
+    assert guided["guide"]["trained"] and guided["guide"]["kappa"] == 1.0 and "guide" in guided["stage_time_s"]
+    written = guide_ckpt.stat().st_mtime_ns
+    reused = recipe.run(_cfg(run_dir, "resume=true", "redo_from=flow", *flow_kw, *guide_kw,
+                             "diffuser.score_guidance_kappa=0.5"))
+    assert not reused["guide"]["trained"] and guide_ckpt.stat().st_mtime_ns == written
+    assert "guide" not in recipe.run(_cfg(run_dir, "resume=true", "redo_from=bc", *flow_kw, *guide_kw,
+                                          "diffuser.score_guidance_kappa=0.5"))  # the flow is loaded: no guide
+
     # the score model's observation normaliser: on by default (fitted buffers saved), off
     # when asked (redo_from=score_model lets that section change)
     score_ckpt = run_dir / "checkpoints" / "score_model.pt"
@@ -197,6 +211,7 @@ def test_kill_during_diffuser_training_then_resume_end_to_end(tmp_path):
     saved = torch.load(score_ckpt, weights_only=True)
     assert bool((saved["state_dict"][scale_key] == 1).all())
     assert saved["hparams"]["num_members"] == 2 and out["flow"]["filter_members"] == 2
+    assert not guide_ckpt.exists()  # the guide's ensemble went with s_psi
 
     # a corrupt checkpoint is a clear error and is left as it was
     score_ckpt.write_bytes(b"garbage")
@@ -562,7 +577,9 @@ def test_sdedit_strength_inpaint_start_and_score_guidance_reach_the_flow_sampler
     scores = score_trajectories(model, data)
 
     def make(*overrides):
-        return recipe.make_sampler(_cfg(tmp_path, *overrides), diffuser, model, scores)
+        cfg = _cfg(tmp_path, *overrides)
+        guide, _ = recipe.flow_guide(cfg, None, model, scores, data, None, "cpu")  # s_psi's guide: no run, no labels
+        return recipe.make_sampler(cfg, diffuser, guide)
 
     assert make().strength == 1.0
     sampler = make("diffuser.strength=0.3")
@@ -600,7 +617,8 @@ def test_score_guidance_by_an_ensemble_and_its_pessimistic_bound(tmp_path):
 
     from torchrl_ftb.data.labels import ReturnTeacher, make_scripted_labels
     from torchrl_ftb.diffusion import make_diffuser
-    from torchrl_ftb.preference import ScoreModel, pessimistic_scores, score_objective, score_trajectories
+    from torchrl_ftb.preference import (ScoreModel, load_score_model, normalized_scores, pessimistic_scores,
+                                        score_objective, score_trajectories)
     from torchrl_ftb.testing import make_toy_dataset
 
     recipe = _recipe()
@@ -612,30 +630,41 @@ def test_score_guidance_by_an_ensemble_and_its_pessimistic_bound(tmp_path):
     run = SimpleNamespace(ckpt=tmp_path / "checkpoints")
     run.ckpt.mkdir()
     cfg = lambda *o: _cfg(tmp_path, "diffuser.score_guidance=0.3", "score_model.steps=20", *o)  # noqa: E731
-    same, span = recipe.flow_guide(cfg(), run, model, scores, data, labels, "cpu")
-    assert same is model and span is scores and not (run.ckpt / recipe.GUIDE_CHECKPOINT).exists()
-    guide, span = recipe.flow_guide(cfg("diffuser.score_guidance_members=3", "diffuser.score_guidance_kappa=1"),
-                                    run, model, scores, data, labels, "cpu")
+    assert recipe.flow_guide(_cfg(tmp_path), run, model, scores, data, labels, "cpu") == (None, {})
+    plain, summary = recipe.flow_guide(cfg(), run, model, scores, data, labels, "cpu")  # s_psi on its own span
+    assert summary == {} and not (run.ckpt / recipe.GUIDE_CHECKPOINT).exists()
+    torch.testing.assert_close(plain(data), normalized_scores(scores, float(scores.min()), float(scores.max())))
+    bound, summary = recipe.flow_guide(cfg("diffuser.score_guidance_members=3", "diffuser.score_guidance_kappa=1"),
+                                       run, model, scores, data, labels, "cpu")
+    assert summary["trained"] and summary["members"] == 3 and summary["kappa"] == 1.0 and summary["steps"] == 20
     path = run.ckpt / recipe.GUIDE_CHECKPOINT
-    assert guide is not model and guide.num_members == 3 and path.is_file()
+    guide = load_score_model(path)
+    assert guide.num_members == 3
     members = score_trajectories(guide, data, members=True)
     assert float(members.std(0).min()) > 0  # members trained apart
+    span = pessimistic_scores(guide, data, kappa=1.0)
     torch.testing.assert_close(span, members.mean(0) - members.std(0))
     assert bool((span < score_trajectories(guide, data)).all())
+    with torch.no_grad():  # the bound on its own dataset span: the dataset spans [0, 1]
+        hat = bound(data)
+    assert abs(float(hat.min())) < 1e-5 and abs(float(hat.max()) - 1.0) < 1e-5
+    torch.testing.assert_close(hat, normalized_scores(span, float(span.min()), float(span.max())))
     written = path.stat().st_mtime_ns
-    again, _ = recipe.flow_guide(cfg("diffuser.score_guidance_members=3"), run, model, scores, data, labels, "cpu")
-    assert path.stat().st_mtime_ns == written  # loaded, not retrained
-    torch.testing.assert_close(score_trajectories(again, data), score_trajectories(guide, data))
-    two, _ = recipe.flow_guide(cfg("diffuser.score_guidance_members=2"), run, model, scores, data, labels, "cpu")
-    assert two.num_members == 2 and path.stat().st_mtime_ns != written
-    # the sampler's objective is the bound on its dataset span: the dataset spans [0, 1]
+    mean, summary = recipe.flow_guide(cfg("diffuser.score_guidance_members=3"), run, model, scores, data, labels,
+                                      "cpu")
+    assert path.stat().st_mtime_ns == written and not summary["trained"]  # loaded, not retrained
+    mean_scores = score_trajectories(guide, data)
+    torch.testing.assert_close(mean(data), normalized_scores(mean_scores, float(mean_scores.min()),
+                                                             float(mean_scores.max())))
+    recipe.flow_guide(cfg("diffuser.score_guidance_members=2"), run, model, scores, data, labels, "cpu")
+    assert load_score_model(path).num_members == 2 and path.stat().st_mtime_ns != written
+    # the sampler climbs the objective it is given
     diffuser = make_diffuser("tiny", obs_dim=data["observation"].shape[-1], action_dim=data["action"].shape[-1],
                              horizon=16, data=data, hidden_dim=16, cond_dim=16)
     sampler = recipe.make_sampler(cfg("diffuser.score_guidance_members=3", "diffuser.score_guidance_kappa=1"),
-                                  diffuser, guide, span)
-    with torch.no_grad():
-        hat = sampler.guide(data)
-    assert abs(float(hat.min())) < 1e-5 and abs(float(hat.max()) - 1.0) < 1e-5
+                                  diffuser, bound)
+    assert sampler.guide is bound and sampler.guide_scale == 0.3
+    assert recipe.make_sampler(cfg(), diffuser, None).guide is None  # a loaded flow: no guide to build
     torch.testing.assert_close(pessimistic_scores(guide, data, kappa=0.0), score_trajectories(guide, data))
     with pytest.raises(ValueError, match="kappa=1.0 needs an ensemble"):
         score_objective(model, 0.0, 1.0, kappa=1.0)
@@ -643,7 +672,8 @@ def test_score_guidance_by_an_ensemble_and_its_pessimistic_bound(tmp_path):
             (("diffuser.score_guidance_kappa=1",), "diffuser.score_guidance_kappa=1 needs an ensemble"),
             (("diffuser.score_guidance_members=0",), "diffuser.score_guidance_members=0: must be a whole number"),
             (("diffuser.score_guidance_kappa=-1",), "diffuser.score_guidance_kappa=-1: must be a number >= 0"),
-            (("diffuser.score_guidance=0", "diffuser.score_guidance_members=3"), "guides nothing without")):
+            (("diffuser.score_guidance=0", "diffuser.score_guidance_members=3"), "guides nothing without"),
+            (("score_model.num_members=3", "diffuser.score_guidance_members=3"), "would be s_psi retrained")):
         with pytest.raises(ValueError, match=message):
             recipe.run(cfg(*overrides, f"run_dir={tmp_path / 'bad'}"))
         assert not (tmp_path / "bad").exists()
@@ -676,8 +706,9 @@ def test_options_added_later_resume_old_run_directories_at_their_no_op_defaults(
     """A run directory written before an option existed resumes when the option is at its no-op value."""
     recipe = _recipe()
     old = {"diffuser": {"guidance": None}, "flow": {"top_k": 8}, "score_model": {}}
-    new = {"diffuser": {"guidance": None, "strength": 1.0, "inpaint_start": False, "score_guidance": 0.0}, "flow": {"top_k": 8, "filter": "score_model",
-                                                                       "ensemble_rule": "mean"},
+    new = {"diffuser": {"guidance": None, "strength": 1.0, "inpaint_start": False, "score_guidance": 0.0,
+                        "score_guidance_members": 1, "score_guidance_kappa": 0.0},
+           "flow": {"top_k": 8, "filter": "score_model", "ensemble_rule": "mean"},
            "score_model": {"num_members": 1}}
     assert recipe._diff_keys(new, old) == []
     new["diffuser"]["strength"] = 0.5

@@ -109,7 +109,8 @@ def check_readers(readers: int | None, candidates: int) -> int:
         (4, 1, 2)
     """
     if isinstance(candidates, bool) or not isinstance(candidates, int) or candidates < 1:
-        raise ValueError(f"candidates={candidates!r}: must be a whole number >= 1 (1: the tracker alone)")
+        raise ValueError(f"candidates={candidates!r}: must be a whole number >= 1 "
+                         f"(1: the tracker alone)")
     if readers is None:
         return SHOOTING_READERS if candidates > 1 else 1
     if readers < 1:

@@ -444,6 +444,7 @@ def _pessimistic(per_member: torch.Tensor, kappa: float) -> torch.Tensor:
 
 
 def _check_kappa(model: ScoreModel, kappa: float, where: str) -> float:
+    """``kappa`` as a float, or a ``ValueError`` prefixed by ``where``: finite, >= 0, and > 0 only for an ensemble."""
     kappa = float(kappa)
     if not (math.isfinite(kappa) and kappa >= 0):
         raise ValueError(f"{where}: kappa must be a finite number >= 0, got {kappa}")
@@ -538,7 +539,8 @@ def load_score_model(
         path: checkpoint file.
         model: load into this model (its numbers must match the file's); ``None`` rebuilds it
             from the stored ``hparams``.
-        map_location: device of the loaded tensors.
+        map_location: device the checkpoint's tensors are read onto; with ``model`` they are copied into its
+            parameters (on its device), without it the rebuilt model is on the CPU (move it with ``.to``).
 
     Raises:
         FileNotFoundError: no file.
