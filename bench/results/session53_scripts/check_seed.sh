@@ -4,10 +4,7 @@
 # usage: bash check_seed.sh TASK NOISE SEED   (venv active; one core)
 T=$1; N=$2; S=$3
 D=$(dirname "$0"); W=/work/runs/room_s52/${T}_e${N}_s${S}_v4500
-if ! grep -q '"diffuser"' $W/stages.json 2>/dev/null; then
-  (. $D/../session43_scripts/common.sh
-   python recipes/ftb_offline.py $C diffuser.steps=4500 run_dir=$W stop_after=diffuser resume=true "$V" >> $W.log 2>&1) || exit 1
-fi
+bash $D/../session52_scripts/rebuild.sh $T $N $S 4500 || exit 1
 bash $D/flow_only.sh $W sg0 diffuser.score_guidance=0 || exit 1
 bash $D/flow_only.sh $W sg0_pen0 diffuser.score_guidance=0 flow.max_hand_penetration=0 || exit 1
 B=/work/runs/room_s53/$(basename $W)

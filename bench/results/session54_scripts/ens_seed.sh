@@ -1,24 +1,19 @@
 # session 54: the ensemble-guided flow (diffuser.score_guidance=0.3, score_guidance_members=5, score_guidance_kappa=K)
-# on one button-press seed, from a fresh machine: rebuild the run up to the diffuser (session 52's configuration;
-# a partial rebuild is resumed), redo it from the flow with the guide (session 52 variant.sh: flow, BC, evaluation,
-# open-loop replay, then the readers reading unless READ_DIR is none), copy its metrics.json and report.md to
-# bench/results/readers_s54/runs/<name>/, then BC seeds (session 53 bc_spread.sh, each copy's metrics.json copied too).
+# on one button-press seed, from a fresh machine: rebuild the run up to the diffuser (session 52 rebuild.sh: a finished
+# rebuild is kept, a partial one resumed), redo it from the flow with the guide (session 52 variant.sh: flow, BC,
+# evaluation, open-loop replay, then the readers reading unless READ_DIR is none), copy its metrics.json and report.md
+# to bench/results/readers_s54/runs/<name>/, then BC seeds (session 53 bc_spread.sh, whose copies go there too).
 # usage: bash ens_seed.sh SEED KAPPA READ_DIR|none [BC_SEED ...]   (venv active; one core)
 #   -> /work/runs/room_s54/button-press-v3_e4_s<SEED>_v4500_sg0.3_ens5k<KAPPA>
 S=$1; K=$2; RD=$3; shift 3
-D=$(dirname "$0"); T=button-press-v3; N=4
-W=/work/runs/room_s52/${T}_e${N}_s${S}_v4500; mkdir -p /work/runs/room_s52 /work/runs/room_s53 /work/runs/room_s54
-if ! grep -q '"diffuser"' $W/stages.json 2>/dev/null; then
-  (. $D/../session43_scripts/common.sh
-   python recipes/ftb_offline.py $C diffuser.steps=4500 run_dir=$W stop_after=diffuser resume=true "$V" >> $W.log 2>&1) || exit 1
-fi
+D=$(dirname "$0"); T=button-press-v3; N=4; KEEP=bench/results/readers_s54/runs
+W=/work/runs/room_s52/${T}_e${N}_s${S}_v4500; mkdir -p /work/runs/room_s53 /work/runs/room_s54
+bash $D/../session52_scripts/rebuild.sh $T $N $S 4500 || exit 1
 G="diffuser.score_guidance=0.3 diffuser.score_guidance_members=5 diffuser.score_guidance_kappa=$K"
 NAME=sg0.3_ens5k$K; E=/work/runs/room_s54/$(basename $W)_$NAME
 OUT=/work/runs/room_s54 READ=$RD bash $D/../session52_scripts/variant.sh $W $NAME $G || { echo "failed: $E"; exit 1; }
-keep() { mkdir -p bench/results/readers_s54/runs/$2 && cp $1/metrics.json $1/report.md bench/results/readers_s54/runs/$2/; }
-keep $E $(basename $E)
+mkdir -p $KEEP/$(basename $E) && cp $E/metrics.json $E/report.md $KEEP/$(basename $E)/
 python3 -c "import json,sys; m=json.load(open(sys.argv[1])); print(sys.argv[2], m['guide'], m['eval']['success_rate'])" \
   $E/metrics.json $(basename $E)
 [ $# -gt 0 ] || exit 0
-bash $D/../session53_scripts/bc_spread.sh $E "$G" "$@"
-for B in "$@"; do keep /work/runs/room_s53/$(basename $E)_bcseed$B $(basename $E)_bcseed$B; done
+KEEP=$KEEP bash $D/../session53_scripts/bc_spread.sh $E "$G" "$@"
