@@ -4,10 +4,10 @@
 # evaluation, open-loop replay, then the readers reading unless READ_DIR is none), copy its metrics.json and report.md
 # to bench/results/readers_s54/runs/<name>/, then BC seeds (session 53 bc_spread.sh, whose copies go there too).
 # usage: bash ens_seed.sh SEED KAPPA READ_DIR|none [BC_SEED ...]   (venv active; one core; session 55: KEEP=<dir> in
-#   the environment puts the metrics copies elsewhere)
+#   the environment puts the metrics copies elsewhere, T=<task> N=<action noise> another task's data)
 #   -> /work/runs/room_s54/button-press-v3_e4_s<SEED>_v4500_sg0.3_ens5k<KAPPA>
 S=$1; K=$2; RD=$3; shift 3
-D=$(dirname "$0"); T=button-press-v3; N=4; KEEP=${KEEP:-bench/results/readers_s54/runs}
+D=$(dirname "$0"); T=${T:-button-press-v3}; N=${N:-4}; KEEP=${KEEP:-bench/results/readers_s54/runs}
 W=/work/runs/room_s52/${T}_e${N}_s${S}_v4500; mkdir -p /work/runs/room_s53 /work/runs/room_s54
 bash $D/../session52_scripts/rebuild.sh $T $N $S 4500 || exit 1
 G="diffuser.score_guidance=0.3 diffuser.score_guidance_members=5 diffuser.score_guidance_kappa=$K"
