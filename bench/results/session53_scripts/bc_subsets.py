@@ -41,6 +41,38 @@ def subset(name: str, final, original, generated: torch.Tensor, off: torch.Tenso
     return torch.cat([p for p in parts if p.batch_size[0]], 0)
 
 
+def load_split(run: Path, readers: Path):
+    """``(cfg, final, original, generated, off)``: a finished run's sets and each generated path's off-path flag from
+    the readers reading ``readers`` (off path: any reading's hand deviation above the tracker-alone bound)."""
+    cfg = OmegaConf.load(run / "config.yaml")
+    entry = json.loads(readers.read_text())["runs"][str(run)]
+    limit = entry["fidelity"]["tracker_alone_hand_deviation_max"]
+    off = torch.tensor([max(s["hand_deviation_per_reader"]) > limit for s in entry["samples"]])
+    _, final, original, generated = load_flow_sets(run)
+    if len(off) != int(generated.sum()):
+        raise ValueError(f"{readers}: {len(off)} readings for {int(generated.sum())} generated paths")
+    return cfg, final, original, generated, off
+
+
+def bc_eval(cfg, trajs, *, seed: int | None = None) -> dict:
+    """BC as the run's recipe trains it (actor, steps, batch, lr, weight decay; ``seed`` default the run's) on
+    ``trajs`` and its evaluation: ``{"trajectories", "transitions", "success_rate", "return_mean"}``."""
+    b, name, seed = cfg.bc, str(cfg.env.name), int(cfg.seed if seed is None else seed)
+    eval_env = functools.partial(make_env, name, seed=int(cfg.eval.seed), toy_horizon=int(cfg.dataset.horizon),
+                                 max_episode_steps=int(cfg.env.max_episode_steps))
+    flat = trajectories_to_flat(trajs)
+    torch.manual_seed(seed)
+    actor = make_bc_actor_for(flat, hidden=tuple(b.hidden), device="cpu")
+    buffer = make_transition_buffer(flat, batch_size=int(b.batch_size), seed=seed)
+    train_bc(actor, buffer, steps=int(b.steps), batch_size=int(b.batch_size), lr=float(b.lr),
+             weight_decay=float(b.weight_decay), seed=seed, progress=False, device="cpu")
+    ev = evaluate_policy(eval_env, actor, num_episodes=int(cfg.eval.num_episodes), seed=int(cfg.eval.seed),
+                         max_steps=cfg.eval.max_steps, num_envs=cfg.eval.num_envs,
+                         stop_on_success=bool(cfg.eval.stop_on_success), progress=False)
+    return {"trajectories": int(trajs.batch_size[0]), "transitions": int(flat.numel()),
+            "success_rate": float(ev["success_rate"]), "return_mean": float(ev["return_mean"])}
+
+
 def main() -> None:
     p = argparse.ArgumentParser()
     p.add_argument("run", type=Path)
@@ -49,33 +81,13 @@ def main() -> None:
     p.add_argument("--subsets", nargs="+", default=list(SUBSETS), choices=SUBSETS)
     args = p.parse_args()
     torch.set_num_threads(1)
-    cfg = OmegaConf.load(args.run / "config.yaml")
-    entry = json.loads(args.readers.read_text())["runs"][str(args.run)]
-    limit = entry["fidelity"]["tracker_alone_hand_deviation_max"]
-    off = torch.tensor([max(s["hand_deviation_per_reader"]) > limit for s in entry["samples"]])
-    _, final, original, generated = load_flow_sets(args.run)
-    if len(off) != int(generated.sum()):
-        raise ValueError(f"{args.readers}: {len(off)} readings for {int(generated.sum())} generated paths")
-    b, name = cfg.bc, str(cfg.env.name)
-    eval_env = functools.partial(make_env, name, seed=int(cfg.eval.seed), toy_horizon=int(cfg.dataset.horizon),
-                                 max_episode_steps=int(cfg.env.max_episode_steps))
+    cfg, final, original, generated, off = load_split(args.run, args.readers)
     record = {**run_record(config={"run": str(args.run), "readers": str(args.readers), "subsets": args.subsets,
-                                   "bc_steps": int(b.steps), "seed": int(cfg.seed),
+                                   "bc_steps": int(cfg.bc.steps), "seed": int(cfg.seed),
                                    "eval_episodes": int(cfg.eval.num_episodes)}),
               "off_path": int(off.sum()), "generated": int(len(off)), "subsets": {}}
     for sub in args.subsets:
-        trajs = subset(sub, final, original, generated, off)
-        flat = trajectories_to_flat(trajs)
-        torch.manual_seed(int(cfg.seed))
-        actor = make_bc_actor_for(flat, hidden=tuple(b.hidden), device="cpu")
-        buffer = make_transition_buffer(flat, batch_size=int(b.batch_size), seed=int(cfg.seed))
-        train_bc(actor, buffer, steps=int(b.steps), batch_size=int(b.batch_size), lr=float(b.lr),
-                 weight_decay=float(b.weight_decay), seed=int(cfg.seed), progress=False, device="cpu")
-        ev = evaluate_policy(eval_env, actor, num_episodes=int(cfg.eval.num_episodes), seed=int(cfg.eval.seed),
-                             max_steps=cfg.eval.max_steps, num_envs=cfg.eval.num_envs,
-                             stop_on_success=bool(cfg.eval.stop_on_success), progress=False)
-        record["subsets"][sub] = {"trajectories": int(trajs.batch_size[0]), "transitions": int(flat.numel()),
-                                  "success_rate": float(ev["success_rate"]), "return_mean": float(ev["return_mean"])}
+        record["subsets"][sub] = bc_eval(cfg, subset(sub, final, original, generated, off))
         print(sub, record["subsets"][sub], flush=True)
         write_json(args.out, record)
 
