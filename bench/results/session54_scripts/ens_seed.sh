@@ -6,14 +6,14 @@
 # usage: bash ens_seed.sh SEED KAPPA READ_DIR|none [BC_SEED ...]   (venv active; one core)
 #   environment (session 55): T=<task> N=<action noise> (default button-press-v3, 4); KEEP=<dir> (default
 #   bench/results/readers_s54/runs); BC="<overrides>" added to the BC seeds' runs only, TAG=<name> naming their copies
-#   (bc_spread.sh's)
-#   -> /work/runs/room_s54/<T>_e<N>_s<SEED>_v4500_sg0.3_ens5k<KAPPA>
+#   (bc_spread.sh's); L=<guidance scale> (session 56; default 0.3)
+#   -> /work/runs/room_s54/<T>_e<N>_s<SEED>_v4500_sg<L>_ens5k<KAPPA>
 S=$1; K=$2; RD=$3; shift 3
-D=$(dirname "$0"); T=${T:-button-press-v3}; N=${N:-4}; KEEP=${KEEP:-bench/results/readers_s54/runs}
+D=$(dirname "$0"); L=${L:-0.3}; T=${T:-button-press-v3}; N=${N:-4}; KEEP=${KEEP:-bench/results/readers_s54/runs}
 W=/work/runs/room_s52/${T}_e${N}_s${S}_v4500; mkdir -p /work/runs/room_s53 /work/runs/room_s54
 bash $D/../session52_scripts/rebuild.sh $T $N $S 4500 || exit 1
-G="diffuser.score_guidance=0.3 diffuser.score_guidance_members=5 diffuser.score_guidance_kappa=$K"
-NAME=sg0.3_ens5k$K; E=/work/runs/room_s54/$(basename $W)_$NAME
+G="diffuser.score_guidance=$L diffuser.score_guidance_members=5 diffuser.score_guidance_kappa=$K"
+NAME=sg${L}_ens5k$K; E=/work/runs/room_s54/$(basename $W)_$NAME
 OUT=/work/runs/room_s54 READ=$RD bash $D/../session52_scripts/variant.sh $W $NAME $G || { echo "failed: $E"; exit 1; }
 mkdir -p $KEEP/$(basename $E) && cp $E/metrics.json $E/report.md $KEEP/$(basename $E)/
 python3 -c "import json,sys; m=json.load(open(sys.argv[1])); print(sys.argv[2], m['guide'], m['eval']['success_rate'])" \
