@@ -3,10 +3,12 @@
 paths drawn at random (without replacement, draw seed D) from the final set's on-path or off-path ones (the readers
 reading's split), for each N and D given. Button-press seed 5's ensemble-guided set poisons BC with either half (top-k
 + its 114 on-path paths: 0.40), seed 8's with neither (top-k + its 47 on-path paths: 1.00): top-k + 47 of seed 5's
-on-path paths asks whether the count explains it.
+on-path paths asks whether the count explains it. ``--drop-near R`` (button-press: obs[0:3] the hand, obs[4:7] the
+button) leaves out the drawn paths' steps with the hand within R m of the button (their mask), asking whether the harm
+sits in what they do at the button (session 56's near_button.py).
 
 usage: python bench/results/session56_scripts/bc_dose.py RUN_DIR READERS.json OUT.json --pool on_path|off_path
-       --n N [N ...] --draws D [D ...]
+       --n N [N ...] --draws D [D ...] [--drop-near R]
 """
 import argparse
 import sys
@@ -28,12 +30,16 @@ def main() -> None:
     p.add_argument("--pool", choices=("on_path", "off_path"), required=True)
     p.add_argument("--n", type=int, nargs="+", required=True)
     p.add_argument("--draws", type=int, nargs="+", default=[0])
+    p.add_argument("--drop-near", type=float, default=None, help="mask the drawn paths' steps this near the button, m")
     args = p.parse_args()
     torch.set_num_threads(1)
     cfg, final, original, generated, off = load_split(args.run, args.readers)
     keys = ("observation", "action", "mask")
     gen = final[generated].select(*keys)
     pool = gen[off] if args.pool == "off_path" else gen[~off]
+    if args.drop_near is not None:
+        o = pool["observation"]
+        pool.set("mask", pool["mask"].bool() & ((o[..., 0:3] - o[..., 4:7]).norm(dim=-1) >= args.drop_near))
     if max(args.n) > pool.batch_size[0]:
         raise ValueError(f"--n {max(args.n)}: the {args.pool} pool of {args.run} holds {pool.batch_size[0]} paths")
     record = {**run_record(config={**vars(args), "run": str(args.run), "readers": str(args.readers),
