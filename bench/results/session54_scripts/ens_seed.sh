@@ -1,4 +1,4 @@
-# session 54: the ensemble-guided flow (diffuser.score_guidance=0.3, score_guidance_members=5, score_guidance_kappa=K)
+# session 54: the ensemble-guided flow (diffuser.score_guidance=L, default 0.3, score_guidance_members=5, score_guidance_kappa=K)
 # on one seed of a task's data with room, from a fresh machine: rebuild the run up to the diffuser (session 52
 # rebuild.sh: a finished rebuild is kept, a partial one resumed), redo it from the flow with the guide (session 52
 # variant.sh: flow, BC, evaluation, open-loop replay, then the readers reading unless READ_DIR is none), copy its

@@ -18,6 +18,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "session53_scripts"))
 from bc_subsets import bc_eval, load_split  # noqa: E402
+from near_button import near_button  # noqa: E402
 
 from torchrl_ftb.provenance import run_record, write_json  # noqa: E402
 
@@ -38,8 +39,7 @@ def main() -> None:
     gen = final[generated].select(*keys)
     pool = gen[off] if args.pool == "off_path" else gen[~off]
     if args.drop_near is not None:
-        o = pool["observation"]
-        pool.set("mask", pool["mask"].bool() & ((o[..., 0:3] - o[..., 4:7]).norm(dim=-1) >= args.drop_near))
+        pool.set("mask", pool["mask"].bool() & ~near_button(pool, args.drop_near))
     if max(args.n) > pool.batch_size[0]:
         raise ValueError(f"--n {max(args.n)}: the {args.pool} pool of {args.run} holds {pool.batch_size[0]} paths")
     record = {**run_record(config={**vars(args), "run": str(args.run), "readers": str(args.readers),
