@@ -16,6 +16,7 @@ The readers' samples are the final set's generated entries in order (``torchrl_f
 checks their lengths against the final set's masks.
 
 usage: python bench/results/session57_scripts/guide_reading.py OUT.json RUN_DIR=READERS.json [...] [--horizon 500]
+       python bench/results/session57_scripts/guide_reading.py --table OUT.json   (Markdown rows of a written file)
 """
 import argparse
 import json
@@ -92,7 +93,32 @@ def read_run(run: Path, readers: Path, *, horizon: int) -> dict:
     return entry
 
 
+TABLE_HEADER = ("| run | Spearman with the true return on the dataset, guide / s_ψ | guide's rating, top-k mean (max) → "
+                "generated mean (max) | generated the guide rates above the top-k's best | s_ψ's rating, top-k mean → "
+                "generated mean | executed, top-k mean → generated mean (on path of generated) | Spearman with the "
+                "executed return over the generated paths, guide / s_ψ |\n|---|---|---|---|---|---|---|")
+
+
+def table(path: Path) -> str:
+    """Markdown rows of a written file, one per run."""
+    lines = [TABLE_HEADER]
+    for e in json.loads(path.read_text())["runs"]:
+        g, s = e["guide"], e["s_psi"]
+        lines.append(
+            f"| {e['env'].removesuffix('-v3')} s{e['seed']}, λ {e['score_guidance']:g} "
+            f"| {g['spearman_true_return_dataset']:.2f} / {s['spearman_true_return_dataset']:.2f} "
+            f"| {g['top_k_mean']:.2f} ({g['top_k_max']:.2f}) → {g['generated_mean']:.2f} ({g['generated_max']:.2f}) "
+            f"| {g['generated_rated_above_top_k_best']} / {e['num_generated']} "
+            f"| {s['top_k_mean']:.2f} → {s['generated_mean']:.2f} "
+            f"| {e['top_k_executed_mean']:,.0f} → {e['generated_executed_mean']:,.0f} ({e['on_path']} / {e['num_generated']}) "
+            f"| {g['spearman_executed_generated']:+.2f} / {s['spearman_executed_generated']:+.2f} |")
+    return "\n".join(lines)
+
+
 def main() -> None:
+    if sys.argv[1:2] == ["--table"]:
+        print(table(Path(sys.argv[2])))
+        return
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("out", type=Path)
     p.add_argument("pairs", nargs="+", help="RUN_DIR=READERS.json")
