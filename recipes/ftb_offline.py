@@ -395,7 +395,7 @@ def make_sampler(cfg, diffuser, guide: Callable[[TensorDictBase], torch.Tensor] 
     s = diffuser_settings(cfg)
     # a generator (not ``seed=``): every flow step must draw fresh noise, reproducibly
     device = diffuser.normalizer.mean.device
-    generator = torch.Generator(device=device).manual_seed(int(cfg.seed))
+    generator = torch.Generator(device=device).manual_seed(stage_seed(cfg, "flow"))
     scale = score_guidance(cfg) if guide is not None else 0.0
     return DiffusionSampler(diffuser, sampler=s["sampler"], steps=s["sample_steps"], guidance=s["guidance"],
                             strength=sdedit_strength(cfg), inpaint_start=inpaint_start(cfg), generator=generator,
@@ -715,7 +715,7 @@ def stage_flow(cfg, run: RunDir, trajs, scores, block_ids, sampler, model, true_
                                   streak=_optional_int(f.get("true_return_streak")))
         scores = block_ids = None  # the flow ranks and blocks the dataset by the oracle itself
     flow = FlowToBetter(
-        sampler, model, **flow_options(cfg), true_reward_fn=true_reward_fn, seed=int(cfg.seed),
+        sampler, model, **flow_options(cfg), true_reward_fn=true_reward_fn, seed=stage_seed(cfg, "flow"),
         true_return_horizon=None if true_reward_fn is None or f.get("true_return_horizon") is None
         else int(f.true_return_horizon),
         true_return_streak=None if true_reward_fn is None or f.get("true_return_streak") is None
@@ -725,6 +725,7 @@ def stage_flow(cfg, run: RunDir, trajs, scores, block_ids, sampler, model, true_
     )
     res = flow(trajs, scores=scores, block_ids=block_ids)
     res.summary.update({f"{k}_m": v for k, v in limits.items()})  # the physics limits the flow applied
+    res.summary["seed"] = stage_seed(cfg, "flow")
     ckpt = {"kind": "torchrl_ftb.flow", "trajectories": _td_to_ckpt(res.trajectories),
             "original": _td_to_ckpt(res.original), "generated": _td_to_ckpt(res.generated),
             "scores": res.scores, "original_scores": res.original_scores, "source_step": res.source_step,
@@ -827,20 +828,21 @@ def bc_trajectories(cfg: DictConfig, flow: dict) -> tuple[TensorDictBase, torch.
     return kept, torch.arange(kept.batch_size[0]) >= original.batch_size[0]
 
 
-def bc_seed(cfg: DictConfig) -> int:
-    """The seed of the BC actor's initialisation and batches: ``bc.seed``, or the run's ``seed`` when null (so BC
-    can be repeated on one flowed set to measure its own spread)."""
-    value = cfg.bc.get("seed")
+def stage_seed(cfg: DictConfig, stage: str) -> int:
+    """The seed of one stage's own randomness: ``<stage>.seed``, or the run's ``seed`` when null, so the stage can
+    be repeated on the same earlier stages (``redo_from=<stage>``) to measure its own spread. ``bc``: the actor's
+    initialisation and batches; ``flow``: the sampler's noise and the flow's draws."""
+    value = cfg[stage].get("seed")
     if value is None:
         return int(cfg.seed)
     if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-        raise ValueError(f"bc.seed={value!r}: must be a whole number >= 0, or null (the run's seed)")
+        raise ValueError(f"{stage}.seed={value!r}: must be a whole number >= 0, or null (the run's seed)")
     return value
 
 
 def stage_bc(cfg, run: RunDir, improved, device, logger):
     b = cfg.bc
-    seed = bc_seed(cfg)
+    seed = stage_seed(cfg, "bc")
     flat = trajectories_to_flat(improved.select("observation", "action", "mask"))
     torch.manual_seed(seed)
     actor = make_bc_actor_for(flat, hidden=tuple(b.hidden), device=device)
@@ -1155,7 +1157,8 @@ def run(cfg: DictConfig) -> dict:
     pair_neighbours(cfg)
     top_block_pairs(cfg)
     switch(cfg, "bc.keep_top_k")  # a malformed switch fails now, not after the flow
-    bc_seed(cfg)
+    stage_seed(cfg, "bc")
+    stage_seed(cfg, "flow")
     try:  # the flow's numbers fail now, not after the diffuser's training
         check_flow_options(**flow_options(cfg), num_members=1 if flow_filter(cfg) == "true_return"
                            else int(cfg.score_model.get("num_members", 1)))

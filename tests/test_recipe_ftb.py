@@ -609,6 +609,30 @@ def test_sdedit_strength_inpaint_start_and_score_guidance_reach_the_flow_sampler
             recipe.score_guidance(_cfg(tmp_path, f"diffuser.score_guidance={bad}"))
 
 
+def test_flow_seed_draws_other_noise_on_the_same_diffuser(tmp_path):
+    """``flow.seed`` (null: the run's seed) seeds the flow sampler's noise, so a flow can be redone on the same
+    diffuser with other noise (``redo_from=flow``); ``bc.seed`` and ``flow.seed`` share one check."""
+    from torchrl_ftb.diffusion import make_diffuser
+    from torchrl_ftb.testing import make_toy_dataset
+
+    recipe = _recipe()
+    data = make_toy_dataset(num_trajectories=4, horizon=16, seed=0).select("observation", "action", "mask")
+    diffuser = make_diffuser("tiny", obs_dim=data["observation"].shape[-1], action_dim=data["action"].shape[-1],
+                             horizon=16, data=data, hidden_dim=16, cond_dim=16)
+    cond = TensorDict({"condition": data[:2]}, batch_size=[2])
+
+    def draw(*overrides):
+        return recipe.make_sampler(_cfg(tmp_path, *overrides), diffuser, None)(cond.clone())["sample"]["observation"]
+
+    assert recipe.stage_seed(_cfg(tmp_path, "seed=3"), "flow") == 3  # null: the run's seed
+    assert recipe.stage_seed(_cfg(tmp_path, "seed=3", "flow.seed=7"), "flow") == 7
+    torch.testing.assert_close(draw("seed=3"), draw("flow.seed=3"))  # the same noise, whichever key sets it
+    assert not torch.allclose(draw("seed=3"), draw("seed=3", "flow.seed=4"))
+    for stage in ("flow", "bc"):
+        with pytest.raises(ValueError, match=f"{stage}.seed=-1: must be a whole number >= 0, or null"):
+            recipe.stage_seed(_cfg(tmp_path, f"{stage}.seed=-1"), stage)
+
+
 def test_score_guidance_by_an_ensemble_and_its_pessimistic_bound(tmp_path):
     """``diffuser.score_guidance_members`` = M > 1 guides by an M-member ensemble trained once on the run's labels
     (kept beside s_psi, loaded again, retrained when M changes); ``diffuser.score_guidance_kappa`` climbs the members'
