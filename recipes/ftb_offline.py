@@ -708,14 +708,14 @@ def stage_flow(cfg, run: RunDir, trajs, scores, block_ids, sampler, model, true_
         keys = ("stats", "summary", "scores", "original_scores", "source_step", "original_indices", "true_returns",
                 "original_true_returns", "filled_true_returns", "original_filled_true_returns")  # indices: None before s29
         return {**out, **{k: ckpt.get(k) for k in keys}}
-    f = cfg.flow
+    f, seed = cfg.flow, stage_seed(cfg, "flow")
     validity_fn, limits = physical_validity_fn(f, trajs)
     if flow_filter(cfg) == "true_return":  # the oracle filter: top-k, acceptance, final ranking by true return
         model = true_return_score(true_reward_fn, horizon=_optional_int(f.get("true_return_horizon")),
                                   streak=_optional_int(f.get("true_return_streak")))
         scores = block_ids = None  # the flow ranks and blocks the dataset by the oracle itself
     flow = FlowToBetter(
-        sampler, model, **flow_options(cfg), true_reward_fn=true_reward_fn, seed=stage_seed(cfg, "flow"),
+        sampler, model, **flow_options(cfg), true_reward_fn=true_reward_fn, seed=seed,
         true_return_horizon=None if true_reward_fn is None or f.get("true_return_horizon") is None
         else int(f.true_return_horizon),
         true_return_streak=None if true_reward_fn is None or f.get("true_return_streak") is None
@@ -725,7 +725,7 @@ def stage_flow(cfg, run: RunDir, trajs, scores, block_ids, sampler, model, true_
     )
     res = flow(trajs, scores=scores, block_ids=block_ids)
     res.summary.update({f"{k}_m": v for k, v in limits.items()})  # the physics limits the flow applied
-    res.summary["seed"] = stage_seed(cfg, "flow")
+    res.summary["seed"] = seed
     ckpt = {"kind": "torchrl_ftb.flow", "trajectories": _td_to_ckpt(res.trajectories),
             "original": _td_to_ckpt(res.original), "generated": _td_to_ckpt(res.generated),
             "scores": res.scores, "original_scores": res.original_scores, "source_step": res.source_step,
